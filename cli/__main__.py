@@ -1,0 +1,3 @@
+from relocdepth.cli.main import main
+
+main()
