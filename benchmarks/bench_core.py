@@ -1,0 +1,111 @@
+"""Forward + backward cost of the method's networks: the floor a training step is measured against.
+
+For a batch of 6 triplets (18 images) at each size, one fresh process per size (so its peak RSS is
+its own) measures:
+
+- ``nets``: bare forward + backward of the depth and DSC networks (a trivial loss on their outputs);
+- ``step``: forward + backward of the full ``triplet_loss`` (LCVS, 6 pairs, 4 scales), same batch;
+- the ratio step / nets (what the method's geometry and losses add on top of the networks);
+- peak RSS of the process (``resource.getrusage``), and RSS after building the networks.
+
+Usage: ``python benchmarks/bench_core.py [--sizes 128x96,256x192,640x480] [--iters 3]
+[--iters-large 2] [--device cpu]``. Prints one table; numbers go to the README (performance).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+TRIPLETS = 6  # the paper's batch size (Sec. IV-B)
+LARGE_PIXELS = 640 * 480
+
+
+def _rss_mb() -> float:
+    # ru_maxrss is in KiB on Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_one(width: int, height: int, iters: int, device: str) -> dict:
+    import torch
+
+    from relocdepth.method import MethodConfig, triplet_loss
+    from relocdepth.models import ModelConfig, build_networks
+
+    torch.manual_seed(0)
+    dev = torch.device(device)
+    nets = build_networks(ModelConfig()).to(dev).train()
+    rss_built = _rss_mb()
+    images = torch.rand(TRIPLETS, 3, 3, height, width, device=dev)
+    K = torch.tensor([[0.9 * width, 0, (width - 1) / 2], [0, 0.9 * width, (height - 1) / 2], [0, 0, 1]],
+                     device=dev).expand(TRIPLETS, 3, 3, 3).contiguous()
+    flat = images.flatten(0, 1)
+
+    def sync() -> None:
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    def nets_step() -> None:
+        disps = nets.depth(flat)
+        dsc = nets.dsc(flat)
+        (sum(d.mean() for d in disps) + dsc.mean()).backward()
+        nets.zero_grad(set_to_none=True)
+
+    def loss_step() -> None:
+        total, _, _ = triplet_loss(nets, images, images, K, MethodConfig())
+        total.backward()
+        nets.zero_grad(set_to_none=True)
+
+    out: dict = {"size": f"{width}x{height}", "images": TRIPLETS * 3, "iters": iters,
+                 "threads": torch.get_num_threads(), "rss_built_mb": rss_built}
+    for name, fn in (("nets", nets_step), ("step", loss_step)):
+        fn()  # warm-up (allocator, kernels)
+        sync()
+        t0 = time.perf_counter()
+        for _ in range(iters):
+            fn()
+        sync()
+        out[f"{name}_s"] = (time.perf_counter() - t0) / iters
+    out["peak_rss_mb"] = _rss_mb()
+    if dev.type == "cuda":
+        out["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="128x96,256x192,640x480")
+    ap.add_argument("--iters", type=int, default=3, help="timed iterations per size")
+    ap.add_argument("--iters-large", type=int, default=2, help="timed iterations at >= 640x480")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child mode: WxH
+    args = ap.parse_args()
+    if args.one:
+        w, h = (int(v) for v in args.one.split("x"))
+        print(json.dumps(run_one(w, h, args.iters, args.device)))
+        return
+    rows = []
+    for size in args.sizes.split(","):
+        w, h = (int(v) for v in size.split("x"))
+        iters = args.iters_large if w * h >= LARGE_PIXELS else args.iters
+        res = subprocess.run(
+            [sys.executable, __file__, "--one", size, "--iters", str(iters), "--device", args.device],
+            check=True, capture_output=True, text=True,
+        )
+        rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    print(f"batch: {TRIPLETS} triplets = {TRIPLETS * 3} images, device {args.device}, "
+          f"torch threads {rows[0]['threads']}")
+    print(f"{'size':>9} {'iters':>5} {'nets fwd+bwd s':>15} {'img/s':>7} {'loss step s':>12} "
+          f"{'step/nets':>9} {'RSS built MB':>12} {'peak RSS MB':>11}")
+    for r in rows:
+        print(f"{r['size']:>9} {r['iters']:>5} {r['nets_s']:>15.2f} {r['images'] / r['nets_s']:>7.1f} "
+              f"{r['step_s']:>12.2f} {r['step_s'] / r['nets_s']:>9.2f} {r['rss_built_mb']:>12.0f} "
+              f"{r['peak_rss_mb']:>11.0f}" + (f"  cuda peak {r['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in r else ""))
+
+
+if __name__ == "__main__":
+    main()

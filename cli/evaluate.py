@@ -1,0 +1,33 @@
+"""``reloc evaluate``: the paper's protocol on shards with ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from relocdepth.cli.common import user_errors
+from relocdepth.cli.main import app
+
+
+@app.command()
+@user_errors
+def evaluate(
+    shards: Annotated[Path, typer.Argument(help="Shard dataset with ground-truth poses (and depth).", show_default=False)],
+    checkpoint: Annotated[str | None, typer.Option("--checkpoint", metavar="RUN", help="Run folder or checkpoint file. Default: the newest run under ./runs.")] = None,
+    out: Annotated[Path | None, typer.Option("-o", "--output", metavar="FILE", help="Report JSON. Default: RUN/eval/report.json; TUM files go to trajectories/ beside it.")] = None,
+    plots: Annotated[Path | None, typer.Option("--plots", metavar="DIR", help="Folder for the PNG plots. Default: plots/ beside the report.")] = None,
+    save_alignment: Annotated[bool, typer.Option("--save-alignment", help="Store the fitted Sim(3) with the run: localize then reports metric poses in the ground-truth frame.")] = False,
+    batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 16,
+    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N.")] = "cpu",
+) -> None:
+    """Sim(3)-aligned pose errors, depth metrics and baselines (JSON report, TUM files, plots)."""
+    from relocdepth.evaluate import EvalConfig
+    from relocdepth.evaluate import evaluate as run_evaluate
+    from relocdepth.report import format_table
+
+    report = run_evaluate(shards, checkpoint, EvalConfig(batch_size=batch_size, device=device),
+                          report_path=out, plots_dir=plots, save_alignment=save_alignment)
+    typer.echo(format_table(report))
+    if save_alignment:
+        typer.echo("alignment saved with the run: `reloc localize` now reports metres in the ground-truth frame")

@@ -1,0 +1,48 @@
+"""``reloc localize``: the pose (+ confidence, + depth) of single images, folders or videos."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from relocdepth.cli.common import user_errors
+from relocdepth.cli.main import app
+
+INPUTS_HELP = (
+    "Image files, folders of images (natural order; in a 7-Scenes sequence folder only the "
+    ".color.png frames) or videos."
+)
+K_HELP = (
+    "Intrinsics of the query images (project YAML or OpenCV calibration file; scaled to the image "
+    "size when the aspect matches, distortion removed). Default: the training camera stored in the "
+    "checkpoint, scaled to the image size (a different aspect ratio is an error)."
+)
+
+
+@app.command()
+@user_errors
+def localize(
+    inputs: Annotated[list[Path], typer.Argument(help=INPUTS_HELP, show_default=False)],
+    checkpoint: Annotated[str | None, typer.Option("--checkpoint", metavar="RUN", help="Run folder or checkpoint file. Default: the newest run under ./runs.")] = None,
+    K: Annotated[str | None, typer.Option("--K", metavar="FILE", help=K_HELP)] = None,
+    depth_out: Annotated[Path | None, typer.Option("--depth-out", metavar="DIR", help="Write <name>.depth.png (uint16, depth x 1000: millimetres once aligned) and <name>.depth_preview.png here.")] = None,
+    fmt: Annotated[str, typer.Option("--format", metavar="json|tum", help="JSON lines (one object per image) or a TUM trajectory (timestamp tx ty tz qx qy qz qw).")] = "json",
+    output: Annotated[Path | None, typer.Option("--output", "-o", metavar="FILE", help="Write the poses to FILE instead of stdout.")] = None,
+    batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 8,
+    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N.")] = "cpu",
+) -> None:
+    """World-from-camera pose, confidence and depth of each image from a trained run."""
+    from relocdepth.localize import LocalizeConfig
+    from relocdepth.localize import localize as run_localize
+
+    cfg = LocalizeConfig(
+        checkpoint=checkpoint, K_file=K, depth_out=str(depth_out) if depth_out else None,
+        format=fmt, output=str(output) if output else None, batch_size=batch_size, device=device,
+    )
+    records, text = run_localize(inputs, cfg)
+    if output is None:
+        typer.echo(text, nl=False)
+    else:
+        aligned = "metres, ground-truth frame" if records and records[0]["aligned"] else "network frame"
+        typer.echo(f"{output}: {len(records)} pose(s) ({aligned})")

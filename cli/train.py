@@ -1,0 +1,85 @@
+"""`reloc train`: train the depth + DSC networks on a shard dataset (maps options onto TrainConfig)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from relocdepth.cli.common import user_errors
+from relocdepth.cli.main import app
+
+from relocdepth.errors import UserError
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UserError(f"--size must look like 640x480, not {text!r}") from None
+    return w, h
+
+
+def _schedule(text: str | None) -> tuple[tuple[int, int], ...]:
+    if not text:
+        return ()
+    try:
+        return tuple((int(e), int(w)) for e, w in (item.split(":") for item in text.split(",")))
+    except ValueError:
+        raise UserError(f"--window-schedule must look like 0:3,50:10,100:20, not {text!r}") from None
+
+
+@app.command()
+@user_errors
+def train(
+    shards: Annotated[Path, typer.Argument(help="Dataset folder written by `reloc ingest` (trains on its train split).")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Run folder: config.json, logs/, checkpoints/.")] = Path("runs/default"),
+    epochs: Annotated[int, typer.Option(help="Epochs; one epoch = every training frame once as a target (paper: 300).")] = 300,
+    batch_size: Annotated[int, typer.Option("--batch-size", help="Triplets per step and per process (paper: 6).")] = 6,
+    size: Annotated[str, typer.Option(help="Network input WxH, multiples of 32 (paper: 640x480).")] = "640x480",
+    lr: Annotated[float, typer.Option(help="Adam learning rate (paper: 1e-4, betas 0.9/0.999).")] = 1e-4,
+    workers: Annotated[int, typer.Option(help="DataLoader worker processes decoding frames (0: in the training process).")] = 2,
+    device: Annotated[str, typer.Option(help="auto (CUDA when available), cpu or cuda.")] = "auto",
+    amp: Annotated[bool, typer.Option("--amp", help="Mixed precision (autocast) on CUDA or CPU.")] = False,
+    amp_dtype: Annotated[str, typer.Option("--amp-dtype", help="Autocast type with --amp: bf16 or fp16 (loss scaling).")] = "bf16",
+    channels_last: Annotated[bool, typer.Option("--channels-last", help="channels_last memory format (CUDA).")] = False,
+    max_steps: Annotated[int | None, typer.Option("--max-steps", help="Stop after this many steps in all (a checkpoint is written).")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in -o from its latest checkpoint, exactly.")] = False,
+    no_lcvs: Annotated[bool, typer.Option("--no-lcvs", help="Ablation w/o LCVS: 2 pairs into the middle frame.")] = False,
+    no_dsc: Annotated[bool, typer.Option("--no-dsc", help="Ablation w/o DSC: absolute pose regression head.")] = False,
+    pretrained: Annotated[str, typer.Option(help="Encoder start: imagenet, a torchvision resnet18 .pth, or none.")] = "imagenet",
+    seed: Annotated[int, typer.Option(help="Seed of weights, triplet order and augmentation.")] = 0,
+    window: Annotated[int, typer.Option(help="Nearby frames lie within +-N frame indices of the target (paper: 20).")] = 20,
+    window_seconds: Annotated[float | None, typer.Option("--window-seconds", help="Window in seconds from timestamps instead (30 fps: 20 frames = 0.667).")] = None,
+    window_schedule: Annotated[str | None, typer.Option("--window-schedule", help="Window by epoch, e.g. 0:3,50:20 (default: --window throughout).")] = None,
+    global_epochs: Annotated[int, typer.Option("--global-epochs", help="Last N epochs use global pairs (paper: 100).")] = 100,
+    global_prob: Annotated[float, typer.Option("--global-prob", help="Probability of a global pair then (paper: 0.5).")] = 0.5,
+    jitter_per_image: Annotated[bool, typer.Option("--jitter-per-image", help="Independent colour jitter per image (default: one draw per triplet).")] = False,
+    scale_max: Annotated[float, typer.Option("--scale-max", help="Scale augmentation upper bound (paper: 1.1; 1 = off).")] = 1.1,
+    log_every: Annotated[int, typer.Option("--log-every", help="Write logs/train.jsonl every N steps.")] = 10,
+    checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Steps between checkpoints.")] = 500,
+    keep_last: Annotated[int, typer.Option("--keep-last", help="Checkpoints to keep (older are deleted).")] = 3,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
+) -> None:
+    """Train depth + DSC networks on SHARDS (paper recipe by default); checkpoints go to -o."""
+    from relocdepth.train import TrainConfig
+    from relocdepth.train import train as run_training
+
+    cfg = TrainConfig(
+        size=_size(size), epochs=epochs, batch_size=batch_size, lr=lr, window=window,
+        window_seconds=window_seconds, window_schedule=_schedule(window_schedule), global_epochs=global_epochs,
+        global_prob=global_prob, scale_max=scale_max, jitter_per_image=jitter_per_image,
+        lcvs=not no_lcvs, use_dsc=not no_dsc,
+        pretrained=None if pretrained.lower() == "none" else pretrained, seed=seed, workers=workers,
+        device=device, amp=amp, amp_dtype=amp_dtype, channels_last=channels_last, max_steps=max_steps,
+        log_every=log_every, checkpoint_every=checkpoint_every, keep_last=keep_last, progress=progress,
+        resume=resume,
+    )
+    summary = run_training(shards, out, cfg)
+    if summary["rank"] == 0:
+        typer.echo(
+            f"trained {summary['steps_this_run']} steps (total {summary['steps']}, epoch {summary['epoch']}, "
+            f"stop: {summary['stop']}); checkpoint {summary['checkpoint']}"
+        )
+        if summary["stop"] == "interrupted":
+            raise typer.Exit(130)

@@ -1,0 +1,262 @@
+"""Shards -> training batches: read image bytes, decode, resize, augment, collate.
+
+The chain, each stage a small function: ``ImageFrames`` (an image-only view of the shards: the
+training path holds no depth or pose offsets, so it cannot read ground truth) ->
+``TripletData[triplet]`` (read 3 images by byte offset, decode, per-image scale 1.0-1.1 + crop back
+to the training size with K following, colour jitter on the network inputs only) -> ``collate``.
+
+Frames are read by indexed random access (``os.pread`` at the offsets in ``index.parquet``, what the
+webdataset project's ``wids`` does) rather than streamed: the paper's sampler draws targets
+uniformly over all training frames and, in the last epochs, sources from anywhere, which a
+streaming shuffle buffer cannot do exactly; measured in ``benchmarks/bench_train.py`` (README,
+*training*), random access also costs less per triplet than streaming the tars.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from relocdepth.camera import Intrinsics
+from relocdepth.errors import UserError
+from relocdepth.sampler import FrameKey, Triplet, TripletSampler
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    width: int = 640  # paper IV-B: 640x480 inputs
+    height: int = 480
+    scale_min: float = 1.0  # paper IV-B: "scaled in the range of 1.0 ~ 1.1 and cropped"
+    scale_max: float = 1.1
+    brightness: float = 0.2  # paper IV-B: colour jitter +-0.2, +-0.2, +-0.2, +-0.1
+    contrast: float = 0.2
+    saturation: float = 0.2
+    hue: float = 0.1
+    # DESIGN.md: one jitter draw per triplet (monodepth2 style); True = independent per image.
+    jitter_per_image: bool = False
+
+    def __post_init__(self) -> None:
+        if self.width % 32 or self.height % 32 or self.width < 32 or self.height < 32:
+            raise UserError(f"--size must be multiples of 32 (e.g. 640x480), not {self.width}x{self.height}")
+        if not 1.0 <= self.scale_min <= self.scale_max:
+            raise UserError(f"scale augmentation needs 1 <= min <= max, not {self.scale_min}-{self.scale_max}")
+
+
+@dataclass(frozen=True)
+class TrainFrame:
+    """What training may know of a frame: where its image bytes are, and its camera."""
+
+    key: str
+    shard_path: str
+    sequence: str
+    frame: int
+    timestamp: float
+    intrinsics: Intrinsics
+    image_ext: str
+    image_offset: int
+    image_size: int
+
+
+class ImageFrames:
+    """Image-only view of a shard dataset's training split (no depth, no pose: by construction)."""
+
+    def __init__(self, frames: list[TrainFrame], name: str, root: str, manifest_hash: str) -> None:
+        self.frames = frames
+        self.name, self.root, self.manifest_hash = name, root, manifest_hash
+        self._fds: dict[str, int] = {}
+        self._pid = os.getpid()
+
+    @classmethod
+    def open(cls, shards: str | os.PathLike, split: str = "train") -> ImageFrames:
+        from relocdepth.dataset import open_dataset
+
+        ds = open_dataset(shards)
+        frames = [
+            TrainFrame(r.key, ds.shard_path(r), r.sequence, r.frame, r.timestamp, r.intrinsics,
+                       r.image_ext, r.image_offset, r.image_size)
+            for r in ds.frames(split)
+        ]
+        if not frames:
+            raise UserError(f"{shards} has no '{split}' frames to train on (see its manifest's sequences)")
+        view = cls(frames, str(ds.manifest.get("name", "")), ds.root, ds.manifest_hash)
+        ds.close()
+        return view
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def keys(self) -> list[FrameKey]:
+        return [FrameKey(f.sequence, f.frame, f.timestamp) for f in self.frames]
+
+    def read_image_bytes(self, i: int) -> bytes:
+        f = self.frames[i]
+        if os.getpid() != self._pid:  # forked DataLoader worker: open its own descriptors
+            self._fds, self._pid = {}, os.getpid()
+        fd = self._fds.get(f.shard_path)
+        if fd is None:
+            fd = self._fds[f.shard_path] = os.open(f.shard_path, os.O_RDONLY)
+        data = os.pread(fd, f.image_size, f.image_offset)
+        if len(data) != f.image_size:
+            raise OSError(f"shard {f.shard_path} is truncated at {f.key}")
+        return data
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_fds"] = {}
+        return state
+
+
+# -- pure image stages ---------------------------------------------------------------------------
+def decode_rgb(data: bytes) -> np.ndarray:
+    """Encoded PNG/JPEG bytes -> RGB uint8 (H, W, 3); ValueError if undecodable."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError("undecodable image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def scale_and_crop(img: np.ndarray, intr: Intrinsics, width: int, height: int, scale: float,
+                   fx0: float, fy0: float) -> tuple[np.ndarray, Intrinsics]:
+    """Resize the whole image to ``scale x (width, height)``, crop ``width x height`` back.
+
+    ``fx0, fy0`` in [0, 1] place the crop within the slack. Intrinsics follow both steps.
+    """
+    import cv2
+
+    sw, sh = max(width, round(width * scale)), max(height, round(height * scale))
+    interp = cv2.INTER_AREA if sw < img.shape[1] else cv2.INTER_LINEAR
+    if (sw, sh) != (img.shape[1], img.shape[0]):
+        img = cv2.resize(img, (sw, sh), interpolation=interp)
+    x0, y0 = round(fx0 * (sw - width)), round(fy0 * (sh - height))
+    out = np.ascontiguousarray(img[y0:y0 + height, x0:x0 + width])
+    return out, intr.scaled(sw, sh).cropped(x0, y0, width, height)
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
+    return img @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def color_jitter(img: np.ndarray, params: tuple[float, float, float, float, tuple[int, ...]]) -> np.ndarray:
+    """torchvision-style jitter on RGB uint8: brightness, contrast, saturation factors and a hue
+    shift (fraction of a turn), applied in ``params[4]`` order, clamped after each."""
+    import cv2
+
+    b, c, s, h, order = params
+    x = img.astype(np.float32) / 255.0
+    for op in order:
+        if op == 0:
+            x = x * b
+        elif op == 1:
+            m = float(_gray(x).mean())
+            x = (x - m) * c + m
+        elif op == 2:
+            g = _gray(x)[..., None]
+            x = (x - g) * s + g
+        else:
+            hsv = cv2.cvtColor(np.clip(x, 0, 1), cv2.COLOR_RGB2HSV)  # float32: H in degrees
+            hsv[..., 0] = np.mod(hsv[..., 0] + h * 360.0, 360.0)
+            x = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+        x = np.clip(x, 0.0, 1.0)
+    return (x * 255.0 + 0.5).astype(np.uint8)
+
+
+def draw_jitter(rng: np.random.Generator, cfg: AugmentConfig) -> tuple[float, float, float, float, tuple[int, ...]]:
+    return (
+        float(rng.uniform(1 - cfg.brightness, 1 + cfg.brightness)),
+        float(rng.uniform(1 - cfg.contrast, 1 + cfg.contrast)),
+        float(rng.uniform(1 - cfg.saturation, 1 + cfg.saturation)),
+        float(rng.uniform(-cfg.hue, cfg.hue)),
+        tuple(int(i) for i in rng.permutation(4)),
+    )
+
+
+# -- torch stages --------------------------------------------------------------------------------
+class TripletData:
+    """Map-style dataset indexed by :class:`Triplet`: the three frames decoded and augmented.
+
+    Returns a dict of numpy arrays, or ``{"skipped": key, "error": msg}`` when a frame cannot be
+    read or decoded (the trainer counts it and goes on).
+    """
+
+    def __init__(self, frames: ImageFrames, cfg: AugmentConfig) -> None:
+        self.frames, self.cfg = frames, cfg
+
+    def __getitem__(self, t: Triplet) -> dict[str, Any]:
+        cfg = self.cfg
+        rng = np.random.default_rng(t.aug_seed)
+        idx = (t.source_a, t.target, t.source_b)
+        geo = [(rng.uniform(cfg.scale_min, cfg.scale_max), rng.random(), rng.random()) for _ in idx]
+        shared = draw_jitter(rng, cfg)
+        images, inputs, Ks = [], [], []
+        for i, (scale, fx0, fy0) in zip(idx, geo):
+            f = self.frames.frames[i]
+            try:
+                raw = decode_rgb(self.frames.read_image_bytes(i))
+            except (OSError, ValueError) as e:
+                return {"skipped": f.key, "error": str(e)}
+            intr = f.intrinsics
+            if (raw.shape[1], raw.shape[0]) != (intr.width, intr.height):
+                intr = intr.scaled(raw.shape[1], raw.shape[0])
+            img, k = scale_and_crop(raw, intr, cfg.width, cfg.height, scale, fx0, fy0)
+            jit = draw_jitter(rng, cfg) if cfg.jitter_per_image else shared
+            images.append(img)
+            inputs.append(color_jitter(img, jit))
+            Ks.append(k.K())
+        return {
+            "images": np.stack(images).transpose(0, 3, 1, 2),  # (3, 3, H, W) uint8
+            "inputs": np.stack(inputs).transpose(0, 3, 1, 2),
+            "K": np.stack(Ks).astype(np.float32),  # (3, 3, 3)
+            "index": np.array(idx, dtype=np.int64),
+            "is_global": t.is_global,
+        }
+
+
+def collate(items: list[dict[str, Any]]) -> dict[str, Any]:
+    """Stack the readable triplets; list the keys of unreadable ones under ``skipped``."""
+    import torch
+
+    ok = [it for it in items if "skipped" not in it]
+    batch: dict[str, Any] = {
+        "skipped": [(it["skipped"], it["error"]) for it in items if "skipped" in it],
+        "attempted": len(items),
+    }
+    if ok:
+        for k in ("images", "inputs", "K", "index"):
+            batch[k] = torch.from_numpy(np.stack([it[k] for it in ok]))
+        batch["global_frac"] = float(np.mean([it["is_global"] for it in ok]))
+    return batch
+
+
+class _EpochTriplets:
+    """torch Sampler over this rank's triplets of one epoch from a start position."""
+
+    def __init__(self, sampler: TripletSampler, epoch: int, start: int) -> None:
+        self.sampler, self.epoch, self.start = sampler, epoch, start
+        self._len = sampler.epoch_length(epoch) - start
+
+    def __iter__(self) -> Iterator[Triplet]:
+        return self.sampler.iter_epoch(self.epoch, self.start)
+
+    def __len__(self) -> int:
+        return self._len
+
+
+def make_loader(data: TripletData, sampler: TripletSampler, epoch: int, start: int, batch_size: int,
+                workers: int = 0, pin_memory: bool = False) -> Any:
+    """A DataLoader over this rank's batches of ``epoch`` from triplet ``start`` on (order kept)."""
+    from torch.utils.data import DataLoader
+
+    return DataLoader(
+        data, sampler=_EpochTriplets(sampler, epoch, start), batch_size=batch_size,  # type: ignore[arg-type]
+        num_workers=workers, collate_fn=collate, pin_memory=pin_memory, drop_last=False,
+        persistent_workers=False, prefetch_factor=4 if workers > 0 else None,
+    )

@@ -1,0 +1,100 @@
+"""PyTorch DDP plumbing for ``torchrun``: process group, device per rank, collective flags.
+
+``torchrun --nproc-per-node N -m relocdepth.cli train ...`` sets RANK / WORLD_SIZE / LOCAL_RANK;
+gloo on CPU, nccl on CUDA. A single process (no WORLD_SIZE) needs none of it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from dataclasses import dataclass
+from typing import Any
+
+from relocdepth.errors import UserError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Dist:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def pick_device(name: str, local_rank: int = 0) -> Any:
+    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is a user error."""
+    import torch
+
+    if name not in ("auto", "cpu", "cuda"):
+        raise UserError(f"--device must be auto, cpu or cuda, not {name!r}")
+    if name == "cuda" or (name == "auto" and torch.cuda.is_available()):
+        if not torch.cuda.is_available():
+            raise UserError("--device cuda but this torch sees no CUDA GPU; use --device cpu")
+        return torch.device("cuda", local_rank)
+    return torch.device("cpu")
+
+
+def init_distributed(device_name: str) -> tuple[Dist, Any]:
+    """Join the torchrun process group if there is one; returns (Dist, torch.device)."""
+    import torch
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist(), pick_device(device_name)
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    device = pick_device(device_name, local)
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    log.info("DDP rank %d of %d on %s", rank, world, device)
+    return Dist(rank, world, local), device
+
+
+def shutdown_distributed(d: Dist) -> None:
+    import torch.distributed as dist
+
+    if d.enabled and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def any_rank(d: Dist, flags: list[bool], device: Any) -> list[bool]:
+    """Element-wise OR of boolean flags over all ranks (identity in one process)."""
+    if not d.enabled:
+        return flags
+    import torch
+    import torch.distributed as dist
+
+    t = torch.tensor([float(f) for f in flags], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return [bool(v) for v in t.tolist()]
+
+
+def barrier(d: Dist) -> None:
+    if d.enabled:
+        import torch.distributed as dist
+
+        dist.barrier()
+
+
+def parameter_digest(module: Any) -> str:
+    """sha256 over every parameter's bytes (in name order): equal on all DDP ranks."""
+    import torch
+
+    h = hashlib.sha256()
+    for name, p in sorted(module.named_parameters()):
+        h.update(name.encode())
+        h.update(p.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()

@@ -1,0 +1,291 @@
+"""The paper's evaluation protocol on shards with ground truth (Sec. IV, Tables I-II, Fig. 5).
+
+Pose: predict every training and test frame; fit a Sim(3) (Umeyama, with scale) from the
+training predictions' camera centres to the training ground truth; apply it to the test
+predictions; report median errors and the share within 5 cm/5 deg and 10 cm/10 deg, per test
+sequence and overall. Depth: per-frame median scaling over 0.1-10 m (Table II).
+For context, on the same split: the mean-training-pose and thumbnail-retrieval baselines, the
+constant-depth reference, and the diagnostics of DESIGN.md's Pitfalls (rotation-only
+alignment, relative pose vs identity, raw spread of the predictions).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from relocdepth import metrics as M
+from relocdepth.errors import UserError
+from relocdepth.trajectory import sim3_to_dict
+
+log = logging.getLogger(__name__)
+
+REPORT_FORMAT = "relocdepth-report"
+REPORT_VERSION = 1
+MIN_FIT_FRAMES = 3  # Umeyama needs three non-collinear centres
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Options of ``reloc evaluate``."""
+
+    batch_size: int = 16
+    depth_range: tuple[float, float] = M.DEPTH_RANGE  # Table II / monodepth2: 0.1-10 m
+    relative_k: int = 5  # relative pose between frames this far apart (issue 6's table)
+    strip_frames: int = 6  # rows of the image | depth | GT plot
+    device: str = "cpu"
+
+
+@dataclass
+class Gathered:
+    """Predictions and ground truth of one split, in index order."""
+
+    keys: list[str] = field(default_factory=list)
+    sequences: list[str] = field(default_factory=list)
+    timestamps: list[float] = field(default_factory=list)
+    T_est: list[np.ndarray] = field(default_factory=list)  # raw, networks' frame
+    T_gt: list[np.ndarray] = field(default_factory=list)
+    thumbs: list[np.ndarray] = field(default_factory=list)
+    confidence: list[float] = field(default_factory=list)
+    depth: list[dict | None] = field(default_factory=list)  # per-frame depth errors
+    constant: list[dict | None] = field(default_factory=list)  # constant-depth reference
+    strips: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.stack(self.T_est), np.stack(self.T_gt)
+
+
+# ----------------------------------------------------------------------------- the protocol
+
+
+def fit_sim3(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Sim(3) (s, R, t) taking predicted camera centres to GT centres (Umeyama, with scale)."""
+    from relocdepth.geometry import umeyama
+
+    s, R, t = umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True)
+    return float(s), R.double().cpu().numpy(), t.double().cpu().numpy()
+
+
+def pose_report(
+    train_est: np.ndarray, train_gt: np.ndarray, test_est: np.ndarray, test_gt: np.ndarray,
+    test_sequences: list[str], relative_k: int = 5,
+) -> tuple[dict, tuple[float, np.ndarray, np.ndarray], np.ndarray]:
+    """Pose figures of the protocol from raw predictions; returns (report, sim3, aligned test)."""
+    s, R, t = fit_sim3(train_est, train_gt)
+    train_al = M.apply_sim3(s, R, t, train_est)
+    test_al = M.apply_sim3(s, R, t, test_est)
+    t_err, r_err = M.pose_errors(test_al, test_gt)
+    rot_only = M.rotation_only_errors(
+        train_est[:, :3, :3], train_gt[:, :3, :3], test_est[:, :3, :3], test_gt[:, :3, :3]
+    )
+    report = {
+        "test": M.pose_summary(t_err, r_err),
+        "per_sequence": M.pose_summary_by_sequence(t_err, r_err, test_sequences),
+        "train": M.pose_summary(*M.pose_errors(train_al, train_gt)),
+        "rotation_only": {"median_r_deg": float(np.median(rot_only)),
+                          "mean_r_deg": float(np.mean(rot_only))},
+        "relative": M.relative_pose_errors(test_al, test_gt, test_sequences, relative_k),
+        "spread": {
+            "prediction_raw": M.pose_spread(test_est),
+            "prediction_aligned": M.pose_spread(test_al),
+            "ground_truth": M.pose_spread(test_gt),
+        },
+    }
+    return report, (s, R, t), test_al
+
+
+def baselines_report(
+    train_gt: np.ndarray, test_gt: np.ndarray, train_thumbs: np.ndarray, test_thumbs: np.ndarray
+) -> dict:
+    """The mean-training-pose and thumbnail-retrieval baselines on the test frames."""
+    mean = M.mean_pose_baseline(train_gt, len(test_gt))
+    retrieved, _ = M.retrieval_baseline(train_thumbs, train_gt, test_thumbs)
+    return {
+        "mean_pose": M.pose_summary(*M.pose_errors(mean, test_gt)),
+        "retrieval": M.pose_summary(*M.pose_errors(retrieved, test_gt)),
+    }
+
+
+# ----------------------------------------------------------------------------- gathering
+
+
+def _checked_records(ds) -> tuple[list, list]:
+    posed = [r for r in ds.records if r.has_pose]
+    if not posed:
+        raise UserError(
+            f"{ds.root} has no ground-truth poses; evaluate needs shards ingested from a source "
+            "with poses (e.g. a 7-Scenes folder or `reloc synth`)"
+        )
+    train = [r for r in posed if r.split == "train"]
+    test = [r for r in posed if r.split == "test"]
+    if len(train) < MIN_FIT_FRAMES:
+        raise UserError(f"{ds.root} has {len(train)} training frames with poses; the Sim(3) fit "
+                        f"needs at least {MIN_FIT_FRAMES}")
+    if not test:
+        raise UserError(f"{ds.root} has no test frames with poses (the test split is empty)")
+    return train, test
+
+
+def _strip_indices(records: list, n: int) -> set[int]:
+    with_depth = [i for i, r in enumerate(records) if r.has_depth]
+    if not with_depth or n <= 0:
+        return set()
+    pick = np.linspace(0, len(with_depth) - 1, min(n, len(with_depth))).round().astype(int)
+    return {with_depth[i] for i in pick}
+
+
+def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: str) -> Gathered:
+    """Predict ``records`` in batches; collect GT, thumbnails and (optionally) depth errors."""
+    import cv2
+    from rich.progress import Progress
+
+    g = Gathered()
+    strips = _strip_indices(records, cfg.strip_frames) if depth else set()
+    with Progress(transient=True, disable=not sys.stderr.isatty()) as progress:
+        task = progress.add_task(f"predict {label}", total=len(records))
+        for start in range(0, len(records), cfg.batch_size):
+            recs = records[start:start + cfg.batch_size]
+            imgs = [ds.read_image(r) for r in recs]
+            pred = predictor.predict(imgs, [r.intrinsics for r in recs], with_depth=depth)
+            for i, (rec, img) in enumerate(zip(recs, imgs)):
+                g.keys.append(rec.key)
+                g.sequences.append(rec.sequence)
+                g.timestamps.append(rec.timestamp)
+                g.T_est.append(pred.T_wc[i])
+                g.T_gt.append(ds.read_pose(rec))
+                g.thumbs.append(M.thumbnail(img))
+                g.confidence.append(float(pred.confidence[i]))
+                if depth and rec.has_depth:
+                    gt = ds.read_depth(rec)
+                    d = cv2.resize(pred.depth[i], (gt.shape[1], gt.shape[0]),
+                                   interpolation=cv2.INTER_LINEAR)
+                    g.depth.append(M.depth_errors(d, gt, cfg.depth_range))
+                    g.constant.append(M.constant_depth_errors(gt, cfg.depth_range))
+                    if start + i in strips:
+                        g.strips.append((img, pred.depth[i], gt))
+            progress.advance(task, len(recs))
+    return g
+
+
+# ----------------------------------------------------------------------------- the job
+
+
+def evaluate(
+    shards: str | Path, checkpoint: str | Path | None, cfg: EvalConfig,
+    report_path: str | Path | None = None, plots_dir: str | Path | None = None,
+    save_alignment: bool = False,
+) -> dict:
+    """The ``reloc evaluate`` job; returns the report (schema ``report``) after writing it.
+
+    Outputs: ``report_path`` (default ``<run>/eval/report.json``), TUM files of the aligned
+    estimate and the GT per test sequence in ``<report dir>/trajectories/``, and PNG plots in
+    ``plots_dir`` (default ``<report dir>/plots/``).
+    """
+    from relocdepth.checkpoint import save_alignment as store_alignment
+    from relocdepth.dataset import open_dataset
+    from relocdepth.predictor import Predictor
+    from relocdepth.schemas import validate
+    from relocdepth.trajectory import write_text_atomic
+
+    ds = open_dataset(shards)
+    train_recs, test_recs = _checked_records(ds)
+    predictor = Predictor.from_checkpoint(checkpoint, device=cfg.device)
+    ckpt_path = Path(predictor.meta["path"])
+    report_path = Path(report_path) if report_path else ckpt_path.parent.parent / "eval" / "report.json"
+    if report_path.is_dir():
+        raise UserError(f"-o {report_path} is a folder; give a file name such as report.json")
+    plots = Path(plots_dir) if plots_dir else report_path.parent / "plots"
+    if predictor.meta.get("manifest_hash") != ds.manifest_hash:
+        log.warning("the checkpoint was trained on other shards than %s", ds.root)
+
+    tr = gather(ds, predictor, train_recs, cfg, depth=False, label="train")
+    te = gather(ds, predictor, test_recs, cfg, depth=True, label="test")
+    train_est, train_gt = tr.arrays()
+    test_est, test_gt = te.arrays()
+    pose, (s, R, t), test_al = pose_report(
+        train_est, train_gt, test_est, test_gt, te.sequences, cfg.relative_k
+    )
+    created = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    alignment = sim3_to_dict(s, R, t, fitted_on=str(ds.root), frames=len(train_recs),
+                             manifest_hash=ds.manifest_hash, created=created)
+    depth = M.depth_summary(te.depth)
+    report = {
+        "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
+        "tool_version": _tool_version(), "created": created,
+        "dataset": {"path": str(ds.root), "manifest_hash": ds.manifest_hash,
+                    "train_frames": len(train_recs), "test_frames": len(test_recs),
+                    "test_sequences": list(dict.fromkeys(te.sequences))},
+        "checkpoint": {"path": str(ckpt_path), "step": int(predictor.meta.get("step", 0)),
+                       "input_size": list(predictor.input_size),
+                       "same_data": predictor.meta.get("manifest_hash") == ds.manifest_hash},
+        "config": _jsonable(asdict(cfg)),
+        "alignment": alignment | {"rotation_only_fit": "train rotations"},
+        "pose": pose,
+        "baselines": baselines_report(train_gt, test_gt, np.stack(tr.thumbs), np.stack(te.thumbs)),
+        "depth": None if depth is None else {
+            "prediction": depth, "constant_reference": M.depth_summary(te.constant)},
+        "confidence_median": float(np.median(te.confidence)),
+        "saved_alignment": bool(save_alignment),
+        "outputs": {},
+    }
+    report["outputs"] = _write_outputs(report_path, plots, te, test_al, test_gt, train_gt, pose)
+    validate("report", report, what="evaluation report")
+    write_text_atomic(report_path, _dumps(report))
+    if save_alignment:
+        store_alignment(ckpt_path, alignment)
+    return report
+
+
+def _write_outputs(report_path: Path, plots: Path, te: Gathered, test_al: np.ndarray,
+                   test_gt: np.ndarray, train_gt: np.ndarray, pose: dict) -> dict:
+    from relocdepth.plots import depth_strips, trajectory_plot
+    from relocdepth.trajectory import write_tum
+
+    traj = report_path.parent / "trajectories"
+    seqs = np.asarray(te.sequences)
+    ts = np.asarray(te.timestamps)
+    tum = {}
+    gt_by, est_by = {}, {}
+    for seq in dict.fromkeys(te.sequences):
+        m = seqs == seq
+        est_f, gt_f = traj / f"{seq}.estimate.tum", traj / f"{seq}.groundtruth.tum"
+        write_tum(est_f, ts[m], test_al[m])
+        write_tum(gt_f, ts[m], test_gt[m])
+        tum[seq] = {"estimate": str(est_f), "groundtruth": str(gt_f)}
+        gt_by[seq], est_by[seq] = test_gt[m, :3, 3], test_al[m, :3, 3]
+    test = pose["test"]
+    title = (f"test: median {test['median_t_m']:.3f} m, {test['median_r_deg']:.1f} deg "
+             "(Sim(3) fitted on train)")
+    traj_png = plots / "trajectory.png"
+    trajectory_plot(traj_png, gt_by, est_by, train_gt[:, :3, 3], title)
+    out = {"report": str(report_path), "tum": tum, "plots": [str(traj_png)]}
+    if te.strips:
+        strips_png = plots / "depth_strips.png"
+        depth_strips(strips_png, te.strips)
+        out["plots"].append(str(strips_png))
+    return out
+
+
+def _tool_version() -> str:
+    from relocdepth import __version__
+
+    return __version__
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
+def _dumps(obj) -> str:
+    import json
+
+    return json.dumps(obj, indent=2) + "\n"

@@ -1,0 +1,292 @@
+"""Localize single images: pose (+ confidence) and depth from a trained checkpoint.
+
+Inputs are image files, folders of images (natural order; in a 7-Scenes sequence folder only
+the ``.color.png`` frames) or videos. Each image goes through :class:`Predictor` in batches.
+With a stored alignment (``reloc evaluate --save-alignment``) poses are mapped into the
+ground-truth frame (metres) and depth is scaled to metres; without one, they are in the
+networks' own frame and units.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from relocdepth.camera import Intrinsics
+from relocdepth.errors import UserError
+from relocdepth.predictor import Prediction, Predictor
+from relocdepth.trajectory import apply_sim3_dict, rotmat_to_quat, sim3_from_dict, tum_lines
+
+log = logging.getLogger(__name__)
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
+VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
+SEVENSCENES_COLOR = ".color.png"
+DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNGs hold depth x 1000 (millimetres once aligned)
+FORMATS = ("json", "tum")
+
+
+@dataclass(frozen=True)
+class LocalizeConfig:
+    """Options of ``reloc localize`` (one field per CLI option)."""
+
+    checkpoint: str | None = None  # run folder or .pt; None = newest run under ./runs
+    K_file: str | None = None  # intrinsics of the query images; None = the training camera
+    depth_out: str | None = None  # folder for 16-bit depth PNGs + colour previews
+    format: str = "json"  # "json" (one object per line) or "tum"
+    output: str | None = None  # file to write; None = the caller prints the lines
+    batch_size: int = 8
+    device: str = "cpu"
+
+
+@dataclass(frozen=True)
+class Frame:
+    name: str  # output stem (file stem, or video stem + frame index)
+    source: str  # path of the image / video
+    timestamp: float  # video time (s), else the frame's position in order
+    image: np.ndarray  # RGB uint8 (H, W, 3)
+
+
+def _natural_key(s: str) -> list:
+    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", s)]
+
+
+def list_folder(folder: Path) -> list[Path]:
+    """Images of a folder in natural order; only the colour frames of a 7-Scenes folder."""
+    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS]
+    colour = [p for p in files if p.name.endswith(SEVENSCENES_COLOR)]
+    if colour:
+        files = colour
+    return sorted(files, key=lambda p: _natural_key(p.name))
+
+
+def expand_inputs(inputs: list[str | Path]) -> list[tuple[str, Path]]:
+    """Check the inputs and list them as ("image"|"video", path); UserError on anything else."""
+    import cv2
+
+    if not inputs:
+        raise UserError("give at least one image, folder of images or video")
+    out: list[tuple[str, Path]] = []
+    for raw in inputs:
+        p = Path(raw)
+        if p.is_dir():
+            imgs = list_folder(p)
+            if not imgs:
+                raise UserError(f"{p} holds no images ({', '.join(IMAGE_EXTS)})")
+            out += [("image", q) for q in imgs]
+        elif not p.exists():
+            raise UserError(f"input {p} does not exist")
+        elif p.suffix.lower() in VIDEO_EXTS:
+            out.append(("video", p))
+        elif p.suffix.lower() in IMAGE_EXTS or cv2.haveImageReader(str(p)):
+            out.append(("image", p))
+        else:
+            raise UserError(f"{p} is neither an image ({', '.join(IMAGE_EXTS)}) nor a video")
+    return out
+
+
+def read_image(path: Path) -> np.ndarray:
+    """RGB uint8 (H, W, 3); UserError if it cannot be decoded."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise UserError(f"cannot read image {path} (missing, truncated or not an image)")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _video_frames(path: Path) -> Iterator[tuple[float, np.ndarray]]:
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise UserError(f"cannot open video {path}")
+    fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
+    n = 0
+    try:
+        while True:
+            ok, bgr = cap.read()
+            if not ok:
+                break
+            ts = n / fps if fps > 0 else float(n)
+            yield ts, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            n += 1
+    finally:
+        cap.release()
+    if n == 0:
+        raise UserError(f"video {path} has no frames (empty or undecodable)")
+
+
+def iter_frames(items: list[tuple[str, Path]]) -> Iterator[Frame]:
+    """Decode the inputs in order; image timestamps are their position in the order."""
+    n_images = 0
+    for kind, path in items:
+        if kind == "image":
+            name = path.name[: -len(SEVENSCENES_COLOR)] if path.name.endswith(SEVENSCENES_COLOR) else path.stem
+            yield Frame(name, str(path), float(n_images), read_image(path))
+            n_images += 1
+        else:
+            for i, (ts, img) in enumerate(_video_frames(path)):
+                yield Frame(f"{path.stem}-{i:06d}", str(path), ts, img)
+
+
+class Calibrated:
+    """Query intrinsics from --K (a calibration file, undistorting when it has distortion)."""
+
+    def __init__(self, K_file: str | Path) -> None:
+        from relocdepth.ingest.intrinsics import load_calibration
+
+        self.calib = load_calibration(K_file)
+
+    def apply(self, image: np.ndarray) -> tuple[np.ndarray, Intrinsics]:
+        import cv2
+
+        h, w = image.shape[:2]
+        cal = self.calib.for_frame_size(w, h)
+        if cal.distorted:
+            image = cv2.undistort(image, cal.intrinsics.K(), np.asarray(cal.distortion))
+        return image, cal.intrinsics
+
+
+def _record(frame: Frame, index: int, T: np.ndarray, pred: Prediction, i: int, aligned: bool) -> dict:
+    return {
+        "source": frame.source,
+        "name": frame.name,
+        "index": index,
+        "timestamp": frame.timestamp,
+        "T_wc": T.tolist(),
+        "t": [float(v) for v in T[:3, 3]],
+        "q": [float(v) for v in rotmat_to_quat(T[:3, :3])],  # qx, qy, qz, qw
+        "confidence": float(pred.confidence[i]),
+        "spread_t": float(pred.spread_t[i]),
+        "spread_r_deg": float(pred.spread_r_deg[i]),
+        "aligned": aligned,
+        "units": "m" if aligned else "network",
+    }
+
+
+class DepthWriter:
+    """Writes depth PNGs into a staging folder, moved into place only when all succeeded."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out = Path(out_dir)
+        if self.out.exists() and not self.out.is_dir():
+            raise UserError(f"--depth-out {self.out} exists and is not a folder")
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.stage = Path(tempfile.mkdtemp(prefix=".partial-", dir=self.out))
+        self.names: set[str] = set()
+
+    def write(self, name: str, depth: np.ndarray) -> dict:
+        import cv2
+
+        from relocdepth.plots import colourise_depth
+
+        stem = name if name not in self.names else f"{name}-{len(self.names)}"
+        self.names.add(stem)
+        raw = np.clip(np.nan_to_num(depth) * DEPTH_PNG_SCALE, 0, 65535).round().astype(np.uint16)
+        cv2.imwrite(str(self.stage / f"{stem}.depth.png"), raw)
+        cv2.imwrite(str(self.stage / f"{stem}.depth_preview.png"), colourise_depth(depth))
+        return {"depth_png": str(self.out / f"{stem}.depth.png"), "depth_scale": 1.0 / DEPTH_PNG_SCALE,
+                "depth_preview": str(self.out / f"{stem}.depth_preview.png")}
+
+    def commit(self) -> None:
+        for f in sorted(self.stage.iterdir()):
+            f.replace(self.out / f.name)
+        self.stage.rmdir()
+
+    def abort(self) -> None:
+        shutil.rmtree(self.stage, ignore_errors=True)
+
+
+def localize_frames(
+    predictor: Predictor, frames: Iterator[Frame], batch_size: int,
+    calibrated: Calibrated | None = None, depth: DepthWriter | None = None,
+) -> list[dict]:
+    """Localize frames in batches; returns one record per frame (see README, localize)."""
+    import cv2
+
+    if batch_size < 1:
+        raise UserError("--batch-size must be at least 1")
+    align = predictor.alignment
+    scale = sim3_from_dict(align)[0] if align else 1.0
+    records: list[dict] = []
+    batch: list[tuple[Frame, Intrinsics]] = []
+
+    def flush() -> None:
+        imgs = [f.image for f, _ in batch]
+        pred = predictor.predict(imgs, [k for _, k in batch], with_depth=depth is not None)
+        T = apply_sim3_dict(align, pred.T_wc) if align else pred.T_wc
+        for i, (f, _) in enumerate(batch):
+            rec = _record(f, len(records), T[i], pred, i, align is not None)
+            if depth is not None:
+                h, w = f.image.shape[:2]
+                d = cv2.resize(pred.depth[i] * scale, (w, h), interpolation=cv2.INTER_LINEAR)
+                rec |= depth.write(f.name, d)
+            records.append(rec)
+        batch.clear()
+
+    for f in frames:
+        if calibrated is not None:
+            img, K = calibrated.apply(f.image)
+            f = Frame(f.name, f.source, f.timestamp, img)
+        else:
+            K = predictor.intrinsics_for(f.image.shape[1], f.image.shape[0])
+        batch.append((f, K))
+        if len(batch) >= batch_size:
+            flush()
+    if batch:
+        flush()
+    return records
+
+
+def format_records(records: list[dict], fmt: str) -> str:
+    """JSON lines (one object per image) or a TUM trajectory (timestamp tx ty tz qx qy qz qw)."""
+    if fmt == "json":
+        return "".join(json.dumps(r) + "\n" for r in records)
+    if fmt == "tum":
+        T = np.array([r["T_wc"] for r in records], np.float64).reshape(-1, 4, 4)
+        return "".join(line + "\n" for line in tum_lines([r["timestamp"] for r in records], T))
+    raise UserError(f"unknown --format {fmt!r}; use one of {', '.join(FORMATS)}")
+
+
+def localize(inputs: list[str | Path], cfg: LocalizeConfig) -> tuple[list[dict], str]:
+    """The ``reloc localize`` job: check inputs, predict, write outputs.
+
+    Returns (records, text in cfg.format); when ``cfg.output`` is set the text is also written
+    there (atomically). Every input is checked before anything is written.
+    """
+    from relocdepth.trajectory import write_text_atomic
+
+    if cfg.format not in FORMATS:
+        raise UserError(f"unknown --format {cfg.format!r}; use one of {', '.join(FORMATS)}")
+    if cfg.batch_size < 1:
+        raise UserError("--batch-size must be at least 1")
+    items = expand_inputs(inputs)
+    calibrated = Calibrated(cfg.K_file) if cfg.K_file else None
+    predictor = Predictor.from_checkpoint(cfg.checkpoint, device=cfg.device)
+    if cfg.output and Path(cfg.output).is_dir():
+        raise UserError(f"--output {cfg.output} is a folder; give a file name")
+    depth = DepthWriter(cfg.depth_out) if cfg.depth_out else None
+    try:
+        records = localize_frames(predictor, iter_frames(items), cfg.batch_size, calibrated, depth)
+    except BaseException:
+        if depth is not None:
+            depth.abort()
+        raise
+    if depth is not None:
+        depth.commit()
+    text = format_records(records, cfg.format)
+    if cfg.output:
+        write_text_atomic(cfg.output, text)
+    if predictor.alignment is None:
+        log.info("no stored alignment: poses are in the networks' frame and units "
+                 "(run `reloc evaluate --save-alignment` on shards with ground truth for metres)")
+    return records, text

@@ -1,0 +1,232 @@
+"""The method: loop-closed view synthesis on a triplet (training loss) and single-image prediction.
+
+``triplet_loss`` is the whole forward pass of one training step (paper Sec. III): depth and DSC
+of the three frames, per-cell poses averaged to one pose per frame, relative poses, view synthesis
+over the pairs, and ``L = L_p + w_s L_s + w_c L_c``. ``predict`` is the test-time path (median
+aggregation, Sec. IV-C).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from relocdepth import geometry as geo
+from relocdepth.losses import (
+    photometric_loss,
+    pose_coordinate_loss,
+    smoothness_loss,
+)
+from relocdepth.models import Networks, disp_to_depth
+
+# Confidence = 1 / (1 + rot_spread / CONF_ROT_DEG + centre_spread / (CONF_TRANS_REL * median depth)):
+# a monotone score from the agreement of the per-cell poses, not a calibrated probability.
+CONF_ROT_DEG = 5.0
+CONF_TRANS_REL = 0.05
+
+__all__ = ["PAIRS_LCVS", "PAIRS_MIDDLE", "MethodConfig", "pairs_for", "predict", "triplet_loss"]
+
+# (target, source) frame indices of a triplet; the middle frame is index 1.
+PAIRS_LCVS: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
+PAIRS_MIDDLE: tuple[tuple[int, int], ...] = ((1, 0), (1, 2))
+
+
+@dataclass(frozen=True)
+class MethodConfig:
+    """Loss options; defaults are the paper's (Sec. III-B, IV-B)."""
+
+    lcvs: bool = True  # loop-closed view synthesis: all 6 ordered pairs (False: 2 pairs into the middle)
+    use_dsc: bool = True  # False: "w/o DSC" ablation, absolute pose from a regression head
+    alpha: float = 0.85  # SSIM weight in L_p (monodepth2)
+    w_s: float = 0.001  # smoothness weight
+    w_c: float = 0.03  # pose-coordinate weight
+    num_scales: int = 4  # decoder scales used in the loss
+    min_depth: float = 0.1
+    max_depth: float = 100.0
+
+
+def pairs_for(cfg: MethodConfig) -> tuple[tuple[int, int], ...]:
+    """The (target, source) pairs of a triplet that ``cfg`` synthesises."""
+    return PAIRS_LCVS if cfg.lcvs else PAIRS_MIDDLE
+
+
+def _check_triplets(images: Tensor, inputs: Tensor, K: Tensor) -> None:
+    if images.ndim != 5 or images.shape[1:3] != (3, 3):
+        raise ValueError(f"images must be (B, 3, 3, H, W), got {tuple(images.shape)}")
+    if inputs.shape != images.shape:
+        raise ValueError(f"inputs {tuple(inputs.shape)} must have the shape of images {tuple(images.shape)}")
+    if K.shape != (images.shape[0], 3, 3, 3):
+        raise ValueError(f"K must be (B, 3, 3, 3), got {tuple(K.shape)}")
+    geo.check_image_size(images.shape[-2], images.shape[-1])
+
+
+def _absolute_poses(
+    nets: Networks, x: Tensor, depth0: Tensor, K: Tensor, use_dsc: bool, aggregate: str
+) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None, Tensor, Tensor]:
+    """Poses of a flat batch ``x (N, 3, H, W)`` with full-res depth ``depth0 (N, 1, H, W)``.
+
+    Returns ``T_wc (N, 4, 4)``, per-cell ``q (N, n, 4)``, ``c (N, n, 3)`` (None w/o DSC), the
+    per-image L_c ``(N,)`` (None w/o DSC) and the aggregate ``q (N, 4)``, ``c (N, 3)``.
+    """
+    if not use_dsc:
+        p = nets.pose(x)
+        T = geo.pose_vector_to_matrix(p)
+        return T, None, None, None, geo.quat_from_matrix(T[:, :3, :3]), p[:, 3:]
+    dsc = nets.dsc(x)
+    q_cells, c_cells = geo.cell_poses(dsc, geo.pool_depth(depth0), K)
+    agg = geo.mean_pose if aggregate == "mean" else geo.median_pose
+    q, c = agg(q_cells, c_cells)
+    l_c = pose_coordinate_loss(q_cells, c_cells, q, c)
+    return geo.pose_matrix(q, c), q_cells, c_cells, l_c, q, c
+
+
+def triplet_loss(
+    nets: Networks, images: Tensor, inputs: Tensor, K: Tensor, cfg: MethodConfig
+) -> tuple[Tensor, dict[str, Tensor], dict[str, float]]:
+    """Training loss of a batch of triplets (loop-closed view synthesis).
+
+    Args:
+        nets: the networks (``nets.dsc``, or ``nets.pose`` when ``cfg.use_dsc`` is False).
+        images: ``(B, 3, 3, H, W)`` in [0, 1], the un-jittered frames (loss targets and sources);
+            the middle frame is index 1.
+        inputs: ``(B, 3, 3, H, W)``, the colour-jittered network inputs.
+        K: ``(B, 3, 3, 3)`` per-image intrinsics at ``H x W``.
+        cfg: loss options.
+
+    Returns:
+        ``total`` (scalar), ``parts`` and ``diagnostics``.
+
+        ``parts`` (tensors attached to the graph; ``.detach()`` before logging): ``L_p``, ``L_s``,
+        ``L_c``; ``L_p/scale{k}`` and ``L_s/scale{k}`` (k = 0 full resolution ... 3);
+        ``L_p/pair_{t}{s}`` (target t synthesised from source s, mean over scales and batch).
+        ``total = L_p + w_s L_s + w_c L_c``; L_p and L_s are means over scales (L_s of scale k
+        weighted 1/2^k as monodepth2), pairs and batch; L_s over the frames used as targets.
+
+        ``diagnostics`` (floats): ``centre_spread`` (RMS distance of the batch's camera centres to
+        their mean), ``rot_spread_deg`` (mean angle of its rotations to their mean), ``rel_trans``
+        and ``rel_rot_deg`` (mean size of the relative poses of the pairs), ``cell_spread`` (mean
+        per-image L_c; 0 w/o DSC), ``valid_frac`` (valid-pixel fraction at scale 0),
+        ``median_depth``, and ``lp_identity`` (L_p of the unwarped source images: the no-motion
+        reference that L_p must beat).
+    """
+    _check_triplets(images, inputs, K)
+    B, _, C, H, W = images.shape
+    x = inputs.reshape(B * 3, C, H, W)
+    Kf = K.reshape(B * 3, 3, 3)
+
+    disps = nets.depth(x)[: cfg.num_scales]
+    depths = [
+        disp_to_depth(
+            d if d.shape[-2:] == (H, W) else F.interpolate(d, (H, W), mode="bilinear", align_corners=False),
+            cfg.min_depth,
+            cfg.max_depth,
+        )
+        for d in disps
+    ]
+    T, _, _, l_c_img, q_img, c_img = _absolute_poses(nets, x, depths[0], Kf, cfg.use_dsc, "mean")
+    T = T.reshape(B, 3, 4, 4)
+
+    pairs = pairs_for(cfg)
+    P = len(pairs)
+    t_idx = torch.tensor([p[0] for p in pairs], device=images.device)
+    s_idx = torch.tensor([p[1] for p in pairs], device=images.device)
+
+    def flat(a: Tensor) -> Tensor:  # (B, P, ...) -> (B * P, ...)
+        return a.reshape(B * P, *a.shape[2:])
+
+    T_t2s = flat(geo.relative_pose(T[:, t_idx], T[:, s_idx]))
+    K_t, K_s = flat(K[:, t_idx]), flat(K[:, s_idx])
+    I_t, I_s = flat(images[:, t_idx]), flat(images[:, s_idx])
+
+    targets = sorted({t for t, _ in pairs})
+    parts: dict[str, Tensor] = {}
+    lp_pairs = images.new_zeros(P)
+    lp_scales, ls_scales = [], []
+    valid_frac = 0.0
+    for k, (disp, depth) in enumerate(zip(disps, depths)):
+        depth_t = flat(depth.reshape(B, 3, 1, H, W)[:, t_idx])
+        warped, valid = geo.warp(I_s, depth_t, T_t2s, K_t, K_s)
+        lp = photometric_loss(I_t, warped, valid, cfg.alpha).reshape(B, P).mean(0)  # (P,)
+        lp_pairs = lp_pairs + lp / len(disps)
+        lp_scales.append(lp.mean())
+        h, w = disp.shape[-2:]
+        disp_t = disp.reshape(B, 3, 1, h, w)[:, targets].reshape(-1, 1, h, w)
+        img_t = images[:, targets].reshape(-1, C, H, W)
+        img_k = img_t if (h, w) == (H, W) else F.interpolate(img_t, (h, w), mode="area")
+        ls_scales.append(smoothness_loss(disp_t, img_k).mean() / 2**k)
+        parts[f"L_p/scale{k}"] = lp_scales[-1]
+        parts[f"L_s/scale{k}"] = ls_scales[-1]
+        if k == 0:
+            valid_frac = float(valid.mean())
+    L_p = torch.stack(lp_scales).mean()
+    L_s = torch.stack(ls_scales).mean()
+    L_c = l_c_img.mean() if l_c_img is not None else images.new_zeros(())
+    total = L_p + cfg.w_s * L_s + cfg.w_c * L_c
+    parts.update({"L_p": L_p, "L_s": L_s, "L_c": L_c})
+    for i, (t, s) in enumerate(pairs):
+        parts[f"L_p/pair_{t}{s}"] = lp_pairs[i]
+
+    with torch.no_grad():
+        diag = _diagnostics(q_img, c_img, T_t2s, l_c_img, depths[0])
+        ones = torch.ones_like(I_t[:, :1])
+        diag["lp_identity"] = float(photometric_loss(I_t, I_s, ones, cfg.alpha).mean())
+        diag["valid_frac"] = valid_frac
+    return total, parts, diag
+
+
+def _diagnostics(
+    q: Tensor, c: Tensor, T_t2s: Tensor, l_c: Tensor | None, depth0: Tensor
+) -> dict[str, float]:
+    q, c = q.detach(), c.detach()
+    qm, cm = geo.mean_pose(q.unsqueeze(0), c.unsqueeze(0))
+    t_rel, r_rel = geo.pose_errors(T_t2s.detach(), torch.eye(4, dtype=T_t2s.dtype, device=T_t2s.device))
+    return {
+        "centre_spread": float((c - cm).norm(dim=-1).pow(2).mean().sqrt()),
+        "rot_spread_deg": float(torch.rad2deg(geo.quat_angle(q, qm)).mean()),
+        "rel_trans": float(t_rel.mean()),
+        "rel_rot_deg": float(r_rel.mean()),
+        "cell_spread": float(l_c.detach().mean()) if l_c is not None else 0.0,
+        "median_depth": float(depth0.detach().median()),
+    }
+
+
+@torch.no_grad()
+def predict(nets: Networks, inputs: Tensor, K: Tensor) -> dict[str, Tensor]:
+    """Absolute pose, confidence and depth of single images (test time: median aggregation).
+
+    The networks run in eval mode (BatchNorm running statistics); their previous mode is restored.
+
+    Args:
+        nets: the networks; depth range from ``nets.cfg``.
+        inputs: ``(B, 3, H, W)`` in [0, 1], H and W multiples of 32.
+        K: ``(B, 3, 3)`` intrinsics at ``H x W``.
+
+    Returns:
+        ``T_wc (B, 4, 4)``, ``confidence (B,)`` in (0, 1] (1 = all cells agree; 1 w/o DSC),
+        ``cell_spread_t (B,)`` median centre distance of the cells to the pose (depth units),
+        ``cell_spread_r_deg (B,)`` their median rotation angle, ``depth (B, 1, H, W)``.
+    """
+    if inputs.ndim != 4 or inputs.shape[1] != 3 or K.shape != (inputs.shape[0], 3, 3):
+        raise ValueError(f"predict needs inputs (B, 3, H, W) and K (B, 3, 3), got "
+                         f"{tuple(inputs.shape)} and {tuple(K.shape)}")
+    geo.check_image_size(inputs.shape[-2], inputs.shape[-1])
+    was_training = nets.training
+    nets.eval()
+    try:
+        depth = disp_to_depth(nets.depth(inputs)[0], nets.cfg.min_depth, nets.cfg.max_depth)
+        T, q_cells, c_cells, _, q, c = _absolute_poses(nets, inputs, depth, K, nets.cfg.use_dsc, "median")
+    finally:
+        nets.train(was_training)
+    B = inputs.shape[0]
+    if q_cells is None or c_cells is None:
+        zeros = inputs.new_zeros(B)
+        return {"T_wc": T, "confidence": torch.ones_like(zeros), "cell_spread_t": zeros,
+                "cell_spread_r_deg": zeros, "depth": depth}
+    spread_t, spread_r = geo.pose_spread(q_cells, c_cells, q, c)
+    scale = depth.flatten(1).median(dim=1).values
+    confidence = 1.0 / (1.0 + spread_r / CONF_ROT_DEG + spread_t / (CONF_TRANS_REL * scale))
+    return {"T_wc": T, "confidence": confidence, "cell_spread_t": spread_t,
+            "cell_spread_r_deg": spread_r, "depth": depth}

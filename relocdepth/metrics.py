@@ -1,0 +1,267 @@
+"""Evaluation metrics (pure numpy): pose errors, depth errors, references and baselines.
+
+Poses are (N, 4, 4) world-from-camera matrices (OpenCV axes). The pose figures follow the
+paper's protocol (Sec. IV, Table I: median position/attitude error after a Sim(3) alignment
+fitted on the training frames); the depth figures follow monodepth2 / the paper's Table II
+(per-frame median scaling, 0.1-10 m). The extra diagnostics (rotation-only alignment, relative
+pose vs identity, raw spread, constant-depth reference) are the ones DESIGN.md's Pitfalls ask
+for, because a collapsed prediction makes the centre-fitted Sim(3) meaningless.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+# The paper's accuracy thresholds (share within 5 cm / 5 deg and 10 cm / 10 deg).
+POSE_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 10.0))
+# Depth evaluation range in metres (monodepth2's indoor convention, the paper's Table II).
+DEPTH_RANGE = (0.1, 10.0)
+# Thumbnail size (W, H) of the retrieval baseline: small enough to ignore detail and noise.
+THUMB_SIZE = (16, 12)
+
+
+# ----------------------------------------------------------------------------- rotations
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """Rotation angle in degrees of (..., 3, 3) rotation matrices (clipped acos of the trace)."""
+    tr = np.trace(R, axis1=-2, axis2=-1)
+    return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def project_to_so3(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to a (3, 3) matrix, via SVD with the det-1 fix."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def chordal_mean_rotation(R: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of (N, 3, 3) rotations (a true rotation mean, unlike averaging angles)."""
+    return project_to_so3(np.asarray(R, dtype=np.float64).sum(axis=0))
+
+
+# ----------------------------------------------------------------------------- pose errors
+
+
+def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame translation error (distance of camera centres) and rotation error (deg).
+
+    T_est, T_gt: (N, 4, 4) world-from-camera. Returns (t_err (N,), r_err_deg (N,)).
+    """
+    T_est, T_gt = np.asarray(T_est, np.float64), np.asarray(T_gt, np.float64)
+    if T_est.shape != T_gt.shape or T_est.shape[-2:] != (4, 4):
+        raise ValueError(f"pose_errors: shapes {T_est.shape} vs {T_gt.shape}, want (N, 4, 4)")
+    t_err = np.linalg.norm(T_est[:, :3, 3] - T_gt[:, :3, 3], axis=-1)
+    R_rel = np.swapaxes(T_est[:, :3, :3], -1, -2) @ T_gt[:, :3, :3]
+    return t_err, rotation_angle_deg(R_rel)
+
+
+def pose_summary(t_err: np.ndarray, r_err: np.ndarray) -> dict:
+    """Median/mean errors and the share (%) within the paper's thresholds."""
+    t_err, r_err = np.asarray(t_err, np.float64), np.asarray(r_err, np.float64)
+    n = int(t_err.size)
+    out: dict = {"frames": n}
+    if n == 0:
+        return out | {"median_t_m": None, "median_r_deg": None, "mean_t_m": None,
+                      "mean_r_deg": None, "pct_5cm_5deg": None, "pct_10cm_10deg": None}
+    out |= {
+        "median_t_m": float(np.median(t_err)), "median_r_deg": float(np.median(r_err)),
+        "mean_t_m": float(np.mean(t_err)), "mean_r_deg": float(np.mean(r_err)),
+    }
+    for t_max, r_max in POSE_THRESHOLDS:
+        key = f"pct_{round(t_max * 100)}cm_{round(r_max)}deg"
+        out[key] = float(100.0 * np.mean((t_err <= t_max) & (r_err <= r_max)))
+    return out
+
+
+def pose_summary_by_sequence(
+    t_err: np.ndarray, r_err: np.ndarray, sequences: Sequence[str]
+) -> dict[str, dict]:
+    """:func:`pose_summary` for each sequence name (in order of first appearance)."""
+    seqs = np.asarray(sequences)
+    return {
+        s: pose_summary(t_err[seqs == s], r_err[seqs == s]) for s in dict.fromkeys(sequences)
+    }
+
+
+# ----------------------------------------------------------------------------- alignments
+
+
+def apply_sim3(scale: float, R: np.ndarray, t: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
+    """Map (N, 4, 4) poses through x -> s R x + t: rotation R R_wc, centre s R c + t (rigid)."""
+    T = np.array(T_wc, dtype=np.float64, copy=True)
+    T[..., :3, :3] = R @ T[..., :3, :3]
+    T[..., :3, 3] = scale * T[..., :3, 3] @ np.asarray(R).T + np.asarray(t)
+    return T
+
+
+def rotation_alignment(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """The rotation A minimising sum ||A R_est_i - R_gt_i||_F (fitted on rotations only).
+
+    Unlike the Sim(3) fitted on camera centres, it stays meaningful when the predicted centres
+    collapse to a point (DESIGN.md Pitfalls).
+    """
+    return project_to_so3(np.einsum("nij,nkj->ik", R_gt, R_est))
+
+
+def rotation_only_errors(
+    R_est_fit: np.ndarray, R_gt_fit: np.ndarray, R_est: np.ndarray, R_gt: np.ndarray
+) -> np.ndarray:
+    """Rotation errors (deg) of R_est after the rotation-only alignment fitted on (fit) frames."""
+    A = rotation_alignment(R_est_fit, R_gt_fit)
+    return rotation_angle_deg(np.swapaxes(A @ R_est, -1, -2) @ R_gt)
+
+
+# ----------------------------------------------------------------------------- diagnostics
+
+
+def relative_pose_errors(
+    T_est: np.ndarray, T_gt: np.ndarray, sequences: Sequence[str], k: int
+) -> dict:
+    """Error of the relative pose between frames k apart (same sequence) vs the identity.
+
+    The relative pose is T_i^-1 T_{i+k}; its rotation error does not depend on any alignment,
+    its translation error is in the units of T_est (metres after a Sim(3)). The identity
+    "prediction" (no motion) is the reference a pose network must beat.
+    """
+    seqs = np.asarray(sequences)
+    i = np.array([j for j in range(len(seqs) - k) if seqs[j] == seqs[j + k]], dtype=np.int64)
+    if i.size == 0:
+        return {"k": k, "pairs": 0, "median_t_m": None, "median_r_deg": None,
+                "identity_median_t_m": None, "identity_median_r_deg": None}
+    inv = np.linalg.inv
+    rel_est = inv(T_est[i]) @ T_est[i + k]
+    rel_gt = inv(T_gt[i]) @ T_gt[i + k]
+    t_err = np.linalg.norm(rel_est[:, :3, 3] - rel_gt[:, :3, 3], axis=-1)
+    r_err = rotation_angle_deg(np.swapaxes(rel_est[:, :3, :3], -1, -2) @ rel_gt[:, :3, :3])
+    return {
+        "k": k, "pairs": int(i.size),
+        "median_t_m": float(np.median(t_err)), "median_r_deg": float(np.median(r_err)),
+        "identity_median_t_m": float(np.median(np.linalg.norm(rel_gt[:, :3, 3], axis=-1))),
+        "identity_median_r_deg": float(np.median(rotation_angle_deg(rel_gt[:, :3, :3]))),
+    }
+
+
+def pose_spread(T: np.ndarray) -> dict:
+    """How spread out a set of poses is: RMS distance of centres from their mean (units of T)
+    and the median angle (deg) of rotations from their chordal mean."""
+    T = np.asarray(T, np.float64)
+    c = T[:, :3, 3]
+    mean_R = chordal_mean_rotation(T[:, :3, :3])
+    return {
+        "centre_rms": float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=-1)))),
+        "rot_median_deg": float(np.median(rotation_angle_deg(mean_R.T @ T[:, :3, :3]))),
+    }
+
+
+# ----------------------------------------------------------------------------- baselines
+
+
+def mean_pose(T: np.ndarray) -> np.ndarray:
+    """The mean pose of (N, 4, 4) poses: mean centre, chordal mean rotation."""
+    T = np.asarray(T, np.float64)
+    out = np.eye(4)
+    out[:3, :3] = chordal_mean_rotation(T[:, :3, :3])
+    out[:3, 3] = T[:, :3, 3].mean(axis=0)
+    return out
+
+
+def mean_pose_baseline(T_train_gt: np.ndarray, n_test: int) -> np.ndarray:
+    """Predict the mean training pose for every test frame: (n_test, 4, 4)."""
+    return np.repeat(mean_pose(T_train_gt)[None], n_test, axis=0)
+
+
+def thumbnail(image: np.ndarray, size: tuple[int, int] = THUMB_SIZE) -> np.ndarray:
+    """A small grey thumbnail, zero mean and unit norm, flattened: (w*h,) float64.
+
+    image: (H, W, 3) RGB or (H, W) grey, any dtype. Area averaging over a w x h grid of
+    (nearly) equal cells, in numpy (needs H >= h and W >= w).
+    """
+    img = np.asarray(image, np.float64)
+    grey = img @ np.array([0.299, 0.587, 0.114]) if img.ndim == 3 else img
+    w, h = size
+    H, W = grey.shape
+    if H < h or W < w:
+        raise ValueError(f"thumbnail: image {W}x{H} smaller than {w}x{h}")
+    rows = np.linspace(0, H, h + 1).round().astype(int)
+    cols = np.linspace(0, W, w + 1).round().astype(int)
+    sums = np.add.reduceat(np.add.reduceat(grey, rows[:-1], axis=0), cols[:-1], axis=1)
+    thumb = sums / np.outer(np.diff(rows), np.diff(cols))
+    v = thumb.ravel() - thumb.mean()
+    norm = np.linalg.norm(v)
+    return v / norm if norm > 0 else v
+
+
+def retrieval_baseline(
+    train_thumbs: np.ndarray, T_train: np.ndarray, query_thumbs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of the nearest training thumbnail (largest dot product = smallest L2 for unit norm).
+
+    train_thumbs: (N, D), T_train: (N, 4, 4), query_thumbs: (M, D).
+    Returns (poses (M, 4, 4), index of the nearest training frame (M,)).
+    """
+    sims = np.asarray(query_thumbs) @ np.asarray(train_thumbs).T
+    nn = np.argmax(sims, axis=1)
+    return np.asarray(T_train)[nn], nn
+
+
+# ----------------------------------------------------------------------------- depth
+
+
+def depth_errors(
+    pred: np.ndarray, gt: np.ndarray, depth_range: tuple[float, float] = DEPTH_RANGE
+) -> dict | None:
+    """Depth metrics of one frame after per-frame median scaling (monodepth2's protocol).
+
+    pred, gt: (H, W) depth at the same size (gt 0 = invalid). Pixels with gt inside
+    depth_range are evaluated; pred is scaled by median(gt)/median(pred) and clipped to the
+    range. Returns the metrics plus "scale", or None when the frame has no valid pixel.
+    """
+    pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    if pred.shape != gt.shape:
+        raise ValueError(f"depth_errors: pred {pred.shape} vs gt {gt.shape}")
+    lo, hi = depth_range
+    mask = (gt > lo) & (gt < hi) & np.isfinite(pred) & (pred > 0)
+    if not mask.any():
+        return None
+    p, g = pred[mask], gt[mask]
+    scale = float(np.median(g) / np.median(p))
+    p = np.clip(p * scale, lo, hi)
+    thresh = np.maximum(g / p, p / g)
+    return {
+        "abs_rel": float(np.mean(np.abs(g - p) / g)),
+        "sq_rel": float(np.mean((g - p) ** 2 / g)),
+        "rmse": float(np.sqrt(np.mean((g - p) ** 2))),
+        "rmse_log": float(np.sqrt(np.mean((np.log(g) - np.log(p)) ** 2))),
+        "delta1": float(np.mean(thresh < 1.25)),
+        "delta2": float(np.mean(thresh < 1.25**2)),
+        "delta3": float(np.mean(thresh < 1.25**3)),
+        "scale": scale,
+    }
+
+
+DEPTH_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "delta1", "delta2", "delta3")
+
+
+def depth_summary(per_frame: Sequence[dict | None]) -> dict | None:
+    """Mean of the per-frame metrics, and std/median of the per-frame scale factors."""
+    frames = [f for f in per_frame if f is not None]
+    if not frames:
+        return None
+    out: dict = {"frames": len(frames)}
+    for key in DEPTH_KEYS:
+        out[key] = float(np.mean([f[key] for f in frames]))
+    scales = np.array([f["scale"] for f in frames])
+    out["scale_median"] = float(np.median(scales))
+    out["scale_std_over_median"] = float(np.std(scales) / np.median(scales))
+    return out
+
+
+def constant_depth_errors(
+    gt: np.ndarray, depth_range: tuple[float, float] = DEPTH_RANGE
+) -> dict | None:
+    """The constant-depth reference: a flat map, median-scaled per frame like a prediction."""
+    return depth_errors(np.ones_like(gt, dtype=np.float64), gt, depth_range)

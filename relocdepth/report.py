@@ -1,0 +1,77 @@
+"""The evaluation report as a plain-text table (what `reloc evaluate` and `reloc demo` print)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def _f(v: float | None, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def _pose_row(name: str, s: dict) -> str:
+    return (f"  {name:<28} {_f(s['median_t_m'], '8.3f')} m {_f(s['median_r_deg'], '7.2f')} deg "
+            f"{_f(s['pct_5cm_5deg'], '8.1f')} % {_f(s['pct_10cm_10deg'], '9.1f')} %")
+
+
+def _depth_row(name: str, d: dict) -> str:
+    return (f"  {name:<20}" + "".join(
+        f"{d[k]:>9.3f}" for k in ("abs_rel", "sq_rel", "rmse", "rmse_log", "delta1", "delta2", "delta3"))
+        + f"{d['scale_std_over_median']:>11.3f}")
+
+
+def format_table(report: dict) -> str:
+    """A human-readable summary of a report (schema ``report``)."""
+    pose, base, ds = report["pose"], report["baselines"], report["dataset"]
+    lines = [
+        (f"evaluation of {report['checkpoint']['path']} (step {report['checkpoint']['step']}) "
+        f"on {ds['path']}: {ds['train_frames']} train / {ds['test_frames']} test frames"),
+        "",
+        f"pose, test frames, Sim(3) fitted on train (scale {report['alignment']['scale']:.4g})",
+        f"  {'':<28} {'median t':>10} {'median r':>11} {'5cm/5deg':>10} {'10cm/10deg':>11}",
+        _pose_row("relocdepth", pose["test"]),
+    ]
+    if len(pose["per_sequence"]) > 1:
+        lines += [_pose_row(f"  {seq}", s) for seq, s in pose["per_sequence"].items()]
+    lines += [
+        _pose_row("mean training pose", base["mean_pose"]),
+        _pose_row("thumbnail retrieval", base["retrieval"]),
+        _pose_row("(train frames, fit residual)", pose["train"]),
+        "",
+        f"rotation-only alignment: median rotation error {pose['rotation_only']['median_r_deg']:.2f} deg",
+    ]
+    rel = pose["relative"]
+    if rel["pairs"]:
+        lines.append(
+            f"relative pose, frames {rel['k']} apart ({rel['pairs']} pairs): "
+            f"{rel['median_t_m']:.3f} m {rel['median_r_deg']:.2f} deg "
+            f"(identity: {rel['identity_median_t_m']:.3f} m {rel['identity_median_r_deg']:.2f} deg)"
+        )
+    sp = pose["spread"]
+    lines.append(
+        f"spread of test poses: centres {sp['prediction_aligned']['centre_rms']:.3f} m aligned "
+        f"({sp['prediction_raw']['centre_rms']:.3g} raw) vs GT {sp['ground_truth']['centre_rms']:.3f} m; "
+        f"rotations {sp['prediction_raw']['rot_median_deg']:.1f} deg vs GT "
+        f"{sp['ground_truth']['rot_median_deg']:.1f} deg"
+    )
+    depth = report.get("depth")
+    if depth:
+        lines += [
+            "",
+            (f"depth, test frames ({depth['prediction']['frames']}), per-frame median scaling, "
+            f"{report['config']['depth_range'][0]:g}-{report['config']['depth_range'][1]:g} m"),
+            f"  {'':<20}" + "".join(f"{h:>9}" for h in
+                                   ("AbsRel", "SqRel", "RMSE", "RMSElog", "d<1.25", "d<1.25^2", "d<1.25^3"))
+            + f"{'scale s/m':>11}",
+            _depth_row("relocdepth", depth["prediction"]),
+            _depth_row("constant depth", depth["constant_reference"]),
+        ]
+    out = report.get("outputs", {})
+    if out:
+        lines += ["", f"report: {out.get('report')}"]
+        lines += [f"plot: {p}" for p in out.get("plots", [])]
+        if out.get("tum"):
+            first = next(iter(out["tum"].values()))
+            lines.append(f"trajectories (TUM, for evo_ape): {Path(first['estimate']).parent}")
+    return "\n".join(lines)
+

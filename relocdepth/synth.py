@@ -1,0 +1,832 @@
+"""A generated indoor scene in the exact Microsoft 7-Scenes layout: the demo data, test fixture
+and evaluation ground truth of the project.
+
+The scene is a textured room (a box, z up, floor at z = 0) with boxes, cylinders, spheres and
+picture frames in it. Frames are rendered by exact analytic ray casting in numpy, so depth
+(z-depth along the camera axis, as 7-Scenes stores it) and poses are exact. Colours come from
+procedural textures evaluated at the 3-D hit point (sums of sinusoids at several scales plus
+soft-edged stripes), prefiltered analytically by the pixel footprint so that bilinear resampling
+works, and shaded by a view-independent (Lambertian) light term, so photometric consistency holds.
+
+Camera paths are smooth sums of low-frequency sinusoids (position; yaw, pitch, roll), traversed
+at the speed that gives the per-frame motion of a handheld 7-Scenes sequence at 30 fps
+(a median 0.74 cm and 1.6 deg per frame). The test sequence follows the first training path
+offset by 10-30 cm with a slightly perturbed orientation: near, but not on, the training paths.
+Everything is deterministic from the seed.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+import re
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from relocdepth.camera import Intrinsics
+from relocdepth.errors import UserError
+
+log = logging.getLogger(__name__)
+
+# The 7-Scenes RGB camera (the values DSAC* and ACE use) at its native 640x480.
+SEVEN_SCENES_INTRINSICS = Intrinsics(525.0, 525.0, 320.0, 240.0, 640, 480)
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What `reloc synth` generates. Lengths in metres, angles in degrees."""
+
+    seed: int = 0                      # one seed fixes scene, textures and paths
+    frames: int = 300                  # per sequence: 10 s at 30 fps
+    width: int = 640                   # 7-Scenes RGB image size
+    height: int = 480
+    train_sequences: int = 2           # seq-01..seq-N train, seq-(N+1) test (7-Scenes scenes: 2-12)
+    fps: float = 30.0                  # 7-Scenes (Kinect) frame rate; also the mp4 rate
+    step_m: float = 0.0075             # median translation per frame (7-Scenes: 0.74 cm)
+    step_deg: float = 1.6              # median rotation per frame (7-Scenes: 1.6 deg)
+    calibration_frames: int = 300      # the steps are medians over this many frames (7-Scenes-ish)
+    room: Vec3 = (4.2, 3.2, 2.6)       # room size x, y, z (an office-sized box)
+    camera_lo: Vec3 = (-0.8, -0.5, 1.15)  # every camera centre stays in this box ...
+    camera_hi: Vec3 = (0.8, 0.5, 1.65)    # ... which objects keep min_clearance away from
+    min_clearance: float = 0.5         # no surface nearer than this to a camera centre
+    path_amplitude: Vec3 = (0.5, 0.22, 0.12)  # reach of a training path about its centre
+    yaw_amplitude: float = 100.0       # how far a path pans left/right about its base heading
+    pitch_base: float = -10.0          # looking slightly down, at objects and floor
+    pitch_amplitude: float = 12.0
+    roll_amplitude: float = 4.0        # handheld cameras roll a little
+    test_offset: float = 0.22          # horizontal offset of the test path from seq-01 (+-4 cm)
+    test_angle_offset: float = 6.0     # orientation perturbation of the test path
+    texture_blur_px: float = 0.6       # Gaussian sigma (pixels) of the analytic texture prefilter
+
+
+# ----------------------------------------------------------------------------------------------
+# Scene
+
+
+@dataclass(frozen=True)
+class Box:
+    """An oriented box: ``centre`` (3,), half sizes ``half`` (3,), ``yaw`` about world z (rad).
+    Faces ``face0 .. face0+5`` in the order -x, +x, -y, +y, -z, +z of the box frame."""
+
+    centre: np.ndarray
+    half: np.ndarray
+    yaw: float
+    face0: int
+
+    def rotation(self) -> np.ndarray:
+        """World-from-box rotation (3, 3)."""
+        c, s = np.cos(self.yaw), np.sin(self.yaw)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A sphere: ``centre`` (3,), ``radius``; one face ``face0``."""
+
+    centre: np.ndarray
+    radius: float
+    face0: int
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """A vertical capped cylinder: axis at ``centre_xy`` (2,), ``radius``, from ``z0`` to ``z1``.
+    Faces ``face0`` (side), ``face0+1`` (top), ``face0+2`` (bottom)."""
+
+    centre_xy: np.ndarray
+    radius: float
+    z0: float
+    z1: float
+    face0: int
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The room (faces 0-5: -x, +x, -y, +y, floor, ceiling), its objects, and per-face textures.
+
+    Texture of face f at world point p (colour in [0, 1] before shading):
+    ``base[f] + sum_k weight[f, k] * term_k(2 pi freq[f, k] . p + phase[f, k])`` where the first
+    ``n_smooth`` terms are sinusoids and the rest soft-edged stripes ``tanh(g sin(.))``.
+    """
+
+    lo: np.ndarray            # (3,) room corner
+    hi: np.ndarray            # (3,) opposite corner
+    boxes: tuple[Box, ...]
+    spheres: tuple[Sphere, ...]
+    cylinders: tuple[Cylinder, ...]
+    base: np.ndarray          # (F, 3) float32
+    freq: np.ndarray          # (F, K, 3) float32, cycles per metre
+    phase: np.ndarray         # (F, K) float32
+    weight: np.ndarray        # (F, K, 3) float32
+    freq_norm: np.ndarray     # (F, K) float32, |freq|
+    n_smooth: int
+    light_dir: np.ndarray     # (3,) unit, towards the light
+    light_pos: np.ndarray     # (3,) a soft ceiling light for a smooth spatial falloff
+
+
+N_SMOOTH = 12          # sinusoids per face, wavelengths log-spaced over WAVELENGTHS
+N_EDGE = 4             # soft-edged stripe terms per face, wavelengths over EDGE_WAVELENGTHS
+WAVELENGTHS = (0.03, 1.2)
+EDGE_WAVELENGTHS = (0.08, 0.45)
+EDGE_SHARPNESS = 8.0   # tanh gain of the stripes when the pixel footprint is negligible
+
+
+def build_scene(seed: int, cfg: SynthConfig | None = None) -> Scene:
+    """The room and its objects for ``seed`` (geometry from ``cfg``, whose own seed is ignored)."""
+    cfg = cfg or SynthConfig()
+    rng = np.random.default_rng([seed, 0])
+    half = np.array(cfg.room) / 2
+    lo, hi = np.array([-half[0], -half[1], 0.0]), np.array([half[0], half[1], cfg.room[2]])
+    faces = _FaceTextures(rng)
+    _room_faces(faces, rng)
+    boxes: list[Box] = []
+    spheres: list[Sphere] = []
+    cylinders: list[Cylinder] = []
+    footprints: list[tuple[float, float, float]] = []  # (x, y, radius) of floor objects
+    for kind in ("low",) * 3 + ("tall",) * 2 + ("cyl",) * 2 + ("sphere",) * 2:
+        obj = _place_object(kind, rng, cfg, lo, hi, footprints, faces)
+        if isinstance(obj, Box):
+            boxes.append(obj)
+        elif isinstance(obj, Sphere):
+            spheres.append(obj)
+        elif isinstance(obj, Cylinder):
+            cylinders.append(obj)
+    for _ in range(3):
+        boxes.append(_picture_frame(rng, lo, hi, faces))
+    light = np.array([0.35, 0.55, 1.0])
+    return Scene(
+        lo=lo, hi=hi, boxes=tuple(boxes), spheres=tuple(spheres), cylinders=tuple(cylinders),
+        base=np.array(faces.base, np.float32), freq=np.array(faces.freq, np.float32),
+        phase=np.array(faces.phase, np.float32), weight=np.array(faces.weight, np.float32),
+        freq_norm=np.linalg.norm(np.array(faces.freq, np.float32), axis=2),
+        n_smooth=N_SMOOTH, light_dir=light / np.linalg.norm(light),
+        light_pos=np.array([0.3 * lo[0], 0.2 * hi[1], hi[2] - 0.2]),
+    )
+
+
+class _FaceTextures:
+    """Accumulates per-face texture parameters while the scene is built."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.base: list[np.ndarray] = []
+        self.freq: list[np.ndarray] = []
+        self.phase: list[np.ndarray] = []
+        self.weight: list[np.ndarray] = []
+
+    def palette(self, sat: tuple[float, float] = (0.2, 0.6), val: tuple[float, float] = (0.35, 0.6)
+                ) -> np.ndarray:
+        """A random base colour (3,) from hue/saturation/value ranges."""
+        h, s, v = self.rng.uniform(0, 1), self.rng.uniform(*sat), self.rng.uniform(*val)
+        rgb = np.clip(np.abs((h * 6 + np.array([0.0, 4.0, 2.0])) % 6 - 3) - 1, 0, 1)
+        return v * (1 - s + s * rgb)
+
+    def add(self, base: np.ndarray, normal: np.ndarray | None) -> int:
+        """Add a face with colour ``base``; frequencies lie in the plane of ``normal`` (a planar
+        face) or point anywhere (a curved one: a solid texture). Returns the face id."""
+        rng = self.rng
+        lam = np.concatenate([
+            np.exp(np.linspace(np.log(WAVELENGTHS[0]), np.log(WAVELENGTHS[1]), N_SMOOTH)),
+            np.exp(rng.uniform(np.log(EDGE_WAVELENGTHS[0]), np.log(EDGE_WAVELENGTHS[1]), N_EDGE)),
+        ]) * rng.uniform(0.8, 1.25, N_SMOOTH + N_EDGE)
+        dirs = rng.normal(size=(len(lam), 3))
+        if normal is not None:
+            dirs -= np.outer(dirs @ normal, normal)
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        # Coarse scales carry more contrast, but fine ones stay visible (no flat areas).
+        amp = np.concatenate([0.06 * (lam[:N_SMOOTH] / WAVELENGTHS[1]) ** 0.2,
+                              np.full(N_EDGE, 0.05)])
+        tint = rng.normal(size=(len(lam), 3)) * 0.3 + 1.0  # mostly luminance, some chroma
+        tint /= np.linalg.norm(tint, axis=1, keepdims=True) / np.sqrt(3)
+        sign = rng.choice([-1.0, 1.0], size=(len(lam), 1))
+        self.base.append(base * rng.uniform(0.9, 1.1, 3))
+        self.freq.append(dirs / lam[:, None])
+        self.phase.append(rng.uniform(0, 2 * np.pi, len(lam)))
+        self.weight.append(sign * amp[:, None] * tint)
+        return len(self.base) - 1
+
+
+def _room_faces(faces: _FaceTextures, rng: np.random.Generator) -> None:
+    wall = faces.palette()
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            n = np.zeros(3)
+            n[axis] = -side  # pointing into the room
+            if axis < 2:
+                base = wall * rng.uniform(0.85, 1.15) + rng.uniform(-0.05, 0.05, 3)
+            elif side < 0:
+                base = faces.palette(sat=(0.3, 0.6), val=(0.3, 0.45))  # floor
+            else:
+                base = faces.palette(sat=(0.0, 0.15), val=(0.55, 0.65))  # ceiling
+            faces.add(np.clip(base, 0.1, 0.8), n)
+
+
+def _box_faces(faces: _FaceTextures, yaw: float) -> int:
+    base = faces.palette()
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    first = -1
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            f = faces.add(base * faces.rng.uniform(0.85, 1.15), rot[:, axis] * side)
+            first = f if first < 0 else first
+    return first
+
+
+def _aabb_gap(a_lo: np.ndarray, a_hi: np.ndarray, b_lo: np.ndarray, b_hi: np.ndarray) -> float:
+    """Euclidean distance between two axis-aligned boxes (0 when they overlap)."""
+    gap = np.maximum(0.0, np.maximum(a_lo - b_hi, b_lo - a_hi))
+    return float(np.linalg.norm(gap))
+
+
+def _place_object(kind: str, rng: np.random.Generator, cfg: SynthConfig, lo: np.ndarray,
+                  hi: np.ndarray, footprints: list[tuple[float, float, float]],
+                  faces: _FaceTextures) -> Box | Sphere | Cylinder | None:
+    """Rejection-sample one floor object that keeps clear of the camera box and of the other
+    floor objects; None when no place is found (deterministic either way)."""
+    cam_lo, cam_hi = np.array(cfg.camera_lo), np.array(cfg.camera_hi)
+    for _ in range(200):
+        if kind in ("low", "tall"):
+            half_xy = rng.uniform(0.15, 0.45, 2) if kind == "low" else rng.uniform(0.15, 0.32, 2)
+            height = rng.uniform(0.25, 0.6) if kind == "low" else rng.uniform(1.0, 2.2)
+            radius, top = float(np.linalg.norm(half_xy)), height
+        elif kind == "cyl":
+            radius, top = rng.uniform(0.08, 0.25), rng.uniform(0.5, hi[2])
+        else:
+            radius = rng.uniform(0.12, 0.3)
+            top = 2 * radius
+        xy = rng.uniform(lo[:2] + radius, hi[:2] - radius)
+        obj_lo = np.array([xy[0] - radius, xy[1] - radius, 0.0])
+        obj_hi = np.array([xy[0] + radius, xy[1] + radius, top])
+        if _aabb_gap(obj_lo, obj_hi, cam_lo, cam_hi) < cfg.min_clearance:
+            continue
+        if any(np.hypot(xy[0] - x, xy[1] - y) < radius + r + 0.05 for x, y, r in footprints):
+            continue
+        footprints.append((float(xy[0]), float(xy[1]), float(radius)))
+        if kind in ("low", "tall"):
+            yaw = float(rng.uniform(0, np.pi))
+            half = np.array([half_xy[0], half_xy[1], top / 2])
+            return Box(np.array([xy[0], xy[1], top / 2]), half, yaw, _box_faces(faces, yaw))
+        if kind == "cyl":
+            base = faces.palette()
+            f0 = faces.add(base, None)
+            faces.add(base * 0.9, np.array([0.0, 0.0, 1.0]))
+            faces.add(base * 0.9, np.array([0.0, 0.0, 1.0]))
+            return Cylinder(np.array(xy), float(radius), 0.0, float(top), f0)
+        return Sphere(np.array([xy[0], xy[1], radius]), float(radius),
+                      faces.add(faces.palette(val=(0.4, 0.65)), None))
+    return None
+
+
+def _picture_frame(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray,
+                   faces: _FaceTextures) -> Box:
+    """A thin box on a wall (a picture or a board): a small depth step on a wall."""
+    axis, side = int(rng.integers(2)), float(rng.choice([-1.0, 1.0]))
+    width, height, thick = rng.uniform(0.3, 0.8), rng.uniform(0.3, 0.6), 0.02
+    half = np.array([thick, thick, height / 2])
+    half[1 - axis] = width / 2
+    centre = np.zeros(3)
+    centre[axis] = (hi[axis] if side > 0 else lo[axis]) - side * thick
+    other = 1 - axis
+    centre[other] = rng.uniform(lo[other] + width, hi[other] - width)
+    centre[2] = rng.uniform(1.0, 2.0)
+    return Box(centre, half, 0.0, _box_faces(faces, 0.0))
+
+
+def clearance(scene: Scene, points: np.ndarray) -> np.ndarray:
+    """Distance (N,) from each point (N, 3) inside the room to the nearest surface (negative
+    inside an object): the minimum of the signed distance functions of all primitives."""
+    p = np.asarray(points, np.float64)
+    d = np.minimum(p - scene.lo, scene.hi - p).min(axis=1)
+    for b in scene.boxes:
+        q = np.abs((p - b.centre) @ b.rotation()) - b.half
+        sdf = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+        d = np.minimum(d, sdf)
+    for s in scene.spheres:
+        d = np.minimum(d, np.linalg.norm(p - s.centre, axis=1) - s.radius)
+    for c in scene.cylinders:
+        q = np.stack([np.linalg.norm(p[:, :2] - c.centre_xy, axis=1) - c.radius,
+                      np.abs(p[:, 2] - (c.z0 + c.z1) / 2) - (c.z1 - c.z0) / 2], axis=1)
+        sdf = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+        d = np.minimum(d, sdf)
+    return d
+
+
+# ----------------------------------------------------------------------------------------------
+# Rendering
+
+
+@functools.lru_cache(maxsize=4)
+def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
+    """Camera-frame rays (H*W, 3) through pixel centres, scaled to unit z (so that the ray
+    parameter of a hit is its z-depth), in row-major pixel order. Cached: read-only."""
+    u = (np.arange(intrinsics.width) - intrinsics.cx) / intrinsics.fx
+    v = (np.arange(intrinsics.height) - intrinsics.cy) / intrinsics.fy
+    uu, vv = np.meshgrid(u, v)
+    rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1)
+    rays.flags.writeable = False
+    return rays
+
+
+def _lin(x: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``x @ M`` for x (N, 3) and M (3, ...) as three multiply-adds: numpy hands such thin
+    products to a multi-threaded BLAS whose thread start-up costs more than the product."""
+    return x[:, :1] * M[0] + x[:, 1:2] * M[1] + x[:, 2:3] * M[2] if M.ndim == 2 else (
+        x[:, 0] * M[0] + x[:, 1] * M[1] + x[:, 2] * M[2])
+
+
+def _corners(lo: np.ndarray, hi: np.ndarray, rot: np.ndarray | None = None,
+             centre: np.ndarray | None = None) -> np.ndarray:
+    """The 8 corners (8, 3) of the box [lo, hi], optionally rotated by ``rot`` about ``centre``;
+    corner i takes hi on axis a where bit a of i is set (so edges join i and i ^ 2**a)."""
+    bits = (np.arange(8)[:, None] >> np.arange(3)) & 1
+    c = np.where(bits == 1, hi, lo)
+    return c if rot is None else centre + (c - centre) @ rot.T
+
+
+def _bounds(prim: Box | Sphere | Cylinder) -> np.ndarray:
+    """Corners (8, 3) of a box bounding the primitive (used to cull rays)."""
+    if isinstance(prim, Box):
+        return _corners(prim.centre - prim.half, prim.centre + prim.half, prim.rotation(),
+                        prim.centre)
+    if isinstance(prim, Sphere):
+        return _corners(prim.centre - prim.radius, prim.centre + prim.radius)
+    r = prim.radius
+    return _corners(np.array([*(prim.centre_xy - r), prim.z0]),
+                    np.array([*(prim.centre_xy + r), prim.z1]))
+
+
+def _hit_box(b: Box, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Slab test: entry ``t`` (N,), ``hit`` (N,), face (N,), outward normal (N, 3)."""
+    n = len(dirs)
+    rot = b.rotation()
+    o_l, d_l = rot.T @ (o - b.centre), _lin(dirs, rot)
+    t1, t2 = (-b.half - o_l) / d_l, (b.half - o_l) / d_l
+    t_near, t_far = np.minimum(t1, t2), np.maximum(t1, t2)
+    ax = np.argmax(t_near, axis=1)
+    t_in = t_near[np.arange(n), ax]
+    hit = (t_in < t_far.min(axis=1)) & (t_in > 0)
+    plus = d_l[np.arange(n), ax] < 0  # a ray going towards -axis enters through the + face
+    return t_in, hit, b.face0 + 2 * ax + plus, rot[:, ax].T * np.where(plus, 1.0, -1.0)[:, None]
+
+
+def _hit_sphere(s: Sphere, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
+    oc = o - s.centre
+    a, bh = np.einsum("ij,ij->i", dirs, dirs), _lin(dirs, oc)
+    disc = bh * bh - a * (oc @ oc - s.radius**2)
+    t = (-bh - np.sqrt(disc)) / a
+    normal = (o + t[:, None] * dirs - s.centre) / s.radius
+    return t, (disc > 0) & (t > 0), np.full(len(dirs), s.face0), normal
+
+
+def _hit_cylinder(c: Cylinder, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Side (a quadratic in x, y) and the two caps; the nearest valid of the three."""
+    oc = o[:2] - c.centre_xy
+    d2 = dirs[:, :2]
+    a, bh = np.einsum("ij,ij->i", d2, d2), d2[:, 0] * oc[0] + d2[:, 1] * oc[1]
+    disc = bh * bh - a * (oc @ oc - c.radius**2)
+    t = (-bh - np.sqrt(disc)) / a
+    z = o[2] + t * dirs[:, 2]
+    hit = (disc > 0) & (t > 0) & (z >= c.z0) & (z <= c.z1)
+    t = np.where(hit, t, np.inf)
+    face = np.full(len(dirs), c.face0)
+    normal = np.zeros((len(dirs), 3))
+    normal[:, :2] = (oc + t[:, None] * d2) / c.radius
+    for cap_z, cap_face, nz in ((c.z1, c.face0 + 1, 1.0), (c.z0, c.face0 + 2, -1.0)):
+        t_c = (cap_z - o[2]) / dirs[:, 2]
+        xy = oc + t_c[:, None] * d2
+        on = (t_c > 0) & (np.einsum("ij,ij->i", xy, xy) <= c.radius**2) & ((o[2] - cap_z) * nz > 0)
+        on &= t_c < t
+        t[on], face[on], normal[on] = t_c[on], cap_face, (0.0, 0.0, nz)
+    return t, np.isfinite(t), face, normal
+
+
+_HIT = {Box: _hit_box, Sphere: _hit_sphere, Cylinder: _hit_cylinder}
+
+
+def cast_rays(scene: Scene, origin: np.ndarray, dirs: np.ndarray,
+              select: Callable[[np.ndarray], np.ndarray | None] | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest hits of rays ``origin + t * dirs`` (origin (3,), dirs (N, 3)) from inside the room.
+
+    ``select(corners (8, 3))`` may return the indices of the rays that can hit an object inside
+    those bounds (None: all rays); it only saves time. Returns ``t`` (N,) in units of ``dirs``,
+    face id (N,) int and unit normal (N, 3)."""
+    o = np.asarray(origin, np.float64)
+    n = len(dirs)
+    rows = np.arange(n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Room: the ray leaves the box through the face with the smallest exit distance.
+        t_axis = np.where(dirs > 0, (scene.hi - o) / dirs,
+                          np.where(dirs < 0, (scene.lo - o) / dirs, np.inf))
+        axis = np.argmin(t_axis, axis=1)
+        t = t_axis[rows, axis]
+        positive = dirs[rows, axis] > 0
+        face = 2 * axis + positive
+        normal = np.zeros((n, 3))
+        normal[rows, axis] = np.where(positive, -1.0, 1.0)
+        for prim in (*scene.boxes, *scene.spheres, *scene.cylinders):
+            idx = None if select is None else select(_bounds(prim))
+            if idx is None:
+                idx = rows
+            if len(idx) == 0:
+                continue
+            t_new, hit, f_new, n_new = _HIT[type(prim)](prim, o, dirs[idx])
+            better = hit & (t_new < t[idx])
+            sel = idx[better]
+            t[sel], face[sel], normal[sel] = t_new[better], f_new[better], n_new[better]
+    return t, face, normal
+
+
+# Pairs of corner indices (12, 2) joined by an edge of a box (see _corners).
+_BOX_EDGES = np.array([(i, i | 1 << a) for a in range(3) for i in range(8) if not i >> a & 1])
+# Depth (metres) of the plane that culling clips boxes with; visible points are much farther.
+NEAR_CLIP = 0.05
+
+
+def _screen_select(T_wc: np.ndarray, intr: Intrinsics
+                   ) -> Callable[[np.ndarray], np.ndarray | None]:
+    """For row-major pixel rays of a camera: the pixels inside the image rectangle bounding the
+    projection of a box given by its corners (8, 3, ordered as :func:`_corners`), clipped by the
+    plane z = NEAR_CLIP in front of the camera (nothing visible is nearer: cameras keep clear of
+    surfaces); an empty array when the box is wholly behind that plane."""
+    R, c = T_wc[:3, :3], T_wc[:3, 3]
+    w, h = intr.width, intr.height
+
+    def select(corners: np.ndarray) -> np.ndarray | None:
+        p = (corners - c) @ R
+        front = p[:, 2] >= NEAR_CLIP
+        if not front.any():
+            return np.empty(0, np.int64)
+        if not front.all():  # add where the box's edges cross the clipping plane
+            i, j = _BOX_EDGES[front[_BOX_EDGES[:, 0]] != front[_BOX_EDGES[:, 1]]].T
+            s = (NEAR_CLIP - p[i, 2]) / (p[j, 2] - p[i, 2])
+            p = np.concatenate([p[front], p[i] + s[:, None] * (p[j] - p[i])])
+        u = intr.fx * p[:, 0] / p[:, 2] + intr.cx
+        v = intr.fy * p[:, 1] / p[:, 2] + intr.cy
+        u0, u1 = max(int(np.floor(u.min())), 0), min(int(np.ceil(u.max())), w - 1)
+        v0, v1 = max(int(np.floor(v.min())), 0), min(int(np.ceil(v.max())), h - 1)
+        if u0 > u1 or v0 > v1:
+            return np.empty(0, np.int64)
+        return (np.arange(v0, v1 + 1)[:, None] * w + np.arange(u0, u1 + 1)).ravel()
+
+    return select
+
+
+# Pixels per block of texture evaluation: small enough for the (block, K) temporaries to stay
+# in cache, which makes the evaluation several times faster than one pass over the image.
+SHADE_BLOCK = 4096
+
+
+def _texture(scene: Scene, f: int, p: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+    """Unshaded colour (m, 3) float32 of face ``f`` at points (m, 3) float32, prefiltered by a
+    Gaussian of sigma ``footprint`` (m,) metres: a sinusoid of frequency k (cycles per metre) is
+    attenuated by exp(-2 pi^2 k^2 sigma^2), and the stripes' tanh gain is capped so that their
+    edges are never sharper than the footprint. Blocks of m <= SHADE_BLOCK keep the thin matrix
+    products below the size where BLAS starts threads."""
+    k, ns = scene.freq[f], scene.n_smooth                             # (K, 3)
+    arg = p @ (2 * np.pi * k.T).astype(np.float32)
+    arg += scene.phase[f]
+    terms = np.sin(arg, out=arg)                                      # (m, K)
+    kf = footprint[:, None] * scene.freq_norm[f]                      # (m, K) cycles per sigma
+    gain = 1.0 / np.sqrt(EDGE_SHARPNESS**-2 + (2 * np.pi * kf[:, ns:]) ** 2)
+    terms[:, ns:] = np.tanh(gain * terms[:, ns:])
+    kf *= kf
+    kf *= -2 * np.pi**2
+    terms *= np.exp(kf, out=kf)
+    return scene.base[f] + terms @ scene.weight[f]
+
+
+def shade(scene: Scene, points: np.ndarray, face: np.ndarray, normal: np.ndarray,
+          footprint: np.ndarray) -> np.ndarray:
+    """Colour (N, 3) float32 in [0, 1] of surface points (N, 3) on faces (N,) with normals (N, 3);
+    ``footprint`` (N,) is the Gaussian sigma (metres on the surface) the texture is filtered by."""
+    colour = np.empty((len(points), 3), np.float32)
+    order = np.argsort(face, kind="stable")
+    ids, starts = np.unique(face[order], return_index=True)
+    ends = np.append(starts[1:], len(order))
+    p32, fp32 = points.astype(np.float32), footprint.astype(np.float32)
+    for f, a, b in zip(ids, starts, ends):
+        for c in range(a, b, SHADE_BLOCK):
+            idx = order[c:min(c + SHADE_BLOCK, b)]
+            colour[idx] = _texture(scene, int(f), p32[idx], fp32[idx])
+    # View-independent Lambertian light plus a smooth falloff from a ceiling light.
+    lambert = 0.6 + 0.4 * np.clip(_lin(normal, scene.light_dir), 0, None)
+    falloff = 0.8 + 0.35 * np.exp(-np.sum((points - scene.light_pos) ** 2, axis=1) / 6.0)
+    return np.clip(colour * (lambert * falloff)[:, None].astype(np.float32), 0, 1)
+
+
+def render(scene: Scene, T_wc: np.ndarray, intrinsics: Intrinsics,
+           texture_blur_px: float = SynthConfig.texture_blur_px) -> tuple[np.ndarray, np.ndarray]:
+    """Render one frame.
+
+    Args:
+        T_wc: (4, 4) world-from-camera pose, OpenCV camera axes (x right, y down, z forward).
+        intrinsics: the pinhole camera (pixel centres at integer coordinates).
+    Returns:
+        rgb (H, W, 3) uint8 and depth (H, W) float32: exact z-depth in metres at pixel centres.
+    """
+    T_wc = np.asarray(T_wc, np.float64)
+    rays = pixel_rays(intrinsics)
+    dirs = _lin(rays, T_wc[:3, :3].T)
+    t, face, normal = cast_rays(scene, T_wc[:3, 3], dirs, _screen_select(T_wc, intrinsics))
+    points = T_wc[:3, 3] + t[:, None] * dirs
+    ray_norm = np.linalg.norm(rays, axis=1)  # = |dirs|
+    ray_len = t * ray_norm
+    cos = np.abs(np.einsum("ij,ij->i", normal, dirs)) / ray_norm
+    # Pixel footprint on the surface: a pixel spans ray_len / f metres across the ray, stretched
+    # by 1 / cos along the slope (geometric mean of the two directions).
+    f = 0.5 * (intrinsics.fx + intrinsics.fy)
+    footprint = texture_blur_px * ray_len / f / np.sqrt(np.maximum(cos, 0.1))
+    colour = shade(scene, points, face, normal, footprint)
+    h, w = intrinsics.height, intrinsics.width
+    rgb = np.rint(colour * 255).astype(np.uint8).reshape(h, w, 3)
+    return rgb, t.astype(np.float32).reshape(h, w)
+
+
+# ----------------------------------------------------------------------------------------------
+# Camera paths
+
+
+@dataclass(frozen=True)
+class _Sinusoids:
+    """``centre + sum_j amp[:, j] sin(freq[:, j] tau + phase[:, j])``, per dimension (D rows)."""
+
+    centre: np.ndarray  # (D,)
+    amp: np.ndarray     # (D, J)
+    freq: np.ndarray    # (D, J), radians per unit tau
+    phase: np.ndarray   # (D, J)
+
+    def __call__(self, tau: np.ndarray) -> np.ndarray:
+        """Values (N, D) at ``tau`` (N,)."""
+        return self.centre + np.sum(self.amp * np.sin(self.freq * tau[:, None, None] + self.phase), -1)
+
+    def plus(self, other: _Sinusoids) -> _Sinusoids:
+        """The sum of two sinusoid sets (same D)."""
+        return _Sinusoids(self.centre + other.centre, np.hstack([self.amp, other.amp]),
+                          np.hstack([self.freq, other.freq]), np.hstack([self.phase, other.phase]))
+
+
+def _random_sinusoids(rng: np.random.Generator, centre: np.ndarray, reach: np.ndarray
+                      ) -> _Sinusoids:
+    """Three octave-ish components per dimension whose amplitudes sum to ``reach`` (D,)."""
+    d = len(centre)
+    rel_amp = np.array([1.0, 0.45, 0.15]) * rng.uniform(0.8, 1.2, (d, 3))
+    amp = rel_amp / rel_amp.sum(1, keepdims=True) * np.asarray(reach)[:, None]
+    freq = np.array([1.0, 2.3, 4.9]) * rng.uniform(0.7, 1.3, (d, 3))
+    return _Sinusoids(np.asarray(centre, float), amp, freq, rng.uniform(0, 2 * np.pi, (d, 3)))
+
+
+def rotation_from_angles(angles: np.ndarray) -> np.ndarray:
+    """World-from-camera rotations (N, 3, 3) for (N, 3) (yaw, pitch, roll) radians in a z-up
+    world: the camera looks along (cos p cos y, cos p sin y, sin p), image x to the right, image
+    y down, then rolled about its optical axis."""
+    yaw, pitch, roll = angles[:, 0], angles[:, 1], angles[:, 2]
+    fwd = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], 1)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right, axis=1, keepdims=True)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd], axis=2)
+    c, s = np.cos(roll), np.sin(roll)
+    z, o = np.zeros_like(roll), np.ones_like(roll)
+    R_roll = np.stack([np.stack([c, -s, z], 1), np.stack([s, c, z], 1), np.stack([z, z, o], 1)], 1)
+    return R @ R_roll
+
+
+def motion_steps(T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame translation (N-1,) in metres and rotation (N-1,) in degrees of poses (N, 4, 4)."""
+    T_wc = np.asarray(T_wc, np.float64)
+    trans = np.linalg.norm(np.diff(T_wc[:, :3, 3], axis=0), axis=1)
+    rel = np.einsum("nji,njk->nik", T_wc[:-1, :3, :3], T_wc[1:, :3, :3])
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    return trans, np.degrees(np.arccos(cos))
+
+
+def _time_step(steps: Callable[[float], np.ndarray], target: float) -> float:
+    """The tau increment per frame that makes the median of ``steps(dt)`` equal ``target``.
+    Steps grow about linearly with the increment; damped rescalings converge."""
+    dt = 0.02
+    for _ in range(12):
+        med = float(np.median(steps(dt)))
+        if med <= 0:
+            break
+        dt *= (target / med) ** 0.7
+    return dt
+
+
+def _poses(pos: _Sinusoids, ang: _Sinusoids, dt_pos: float, dt_ang: float, n: int) -> np.ndarray:
+    i = np.arange(n, dtype=np.float64)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = rotation_from_angles(ang(i * dt_ang))
+    T[:, :3, 3] = pos(i * dt_pos)
+    return T
+
+
+def _as_written(T: np.ndarray) -> np.ndarray:
+    """The poses exactly as the pose files store them (so images match the files)."""
+    return np.array([float(_fmt(v)) for v in T.ravel()]).reshape(T.shape)
+
+
+def _fmt(v: float) -> str:
+    return f"{v: .8e}"
+
+
+def sequence_names(cfg: SynthConfig) -> list[str]:
+    """``seq-01`` ... for the training sequences, then the test sequence."""
+    return [f"seq-{i + 1:02d}" for i in range(cfg.train_sequences + 1)]
+
+
+def camera_paths(cfg: SynthConfig) -> dict[str, np.ndarray]:
+    """World-from-camera poses (frames, 4, 4) of every sequence, training ones first, the test
+    sequence last. Depends only on the seed and the motion fields of ``cfg`` (not on the size);
+    the speeds are calibrated over the first ``calibration_frames`` frames, so a sequence of
+    fewer frames is a prefix of a longer one."""
+    _check_config(cfg)
+    rng = np.random.default_rng([cfg.seed, 1])
+    cam_lo, cam_hi = np.array(cfg.camera_lo), np.array(cfg.camera_hi)
+    reach = np.array(cfg.path_amplitude)
+    off_wobble = np.array([0.04, 0.04, 0.03])
+    off_max = np.array([cfg.test_offset, cfg.test_offset, 0.05]) + off_wobble
+    slack = np.maximum((cam_hi - cam_lo) / 2 - reach - off_max, 0)
+    deg = np.radians
+    names = sequence_names(cfg)
+    specs = []
+    for _ in range(cfg.train_sequences):
+        centre = (cam_lo + cam_hi) / 2 + rng.uniform(-slack, slack)
+        pos = _random_sinusoids(rng, centre, reach)
+        ang0 = np.array([rng.uniform(0, 2 * np.pi), deg(cfg.pitch_base), 0.0])
+        ang = _random_sinusoids(rng, ang0, deg([cfg.yaw_amplitude, cfg.pitch_amplitude,
+                                                cfg.roll_amplitude]))
+        specs.append((pos, ang, None))
+    # Test: the first training path, shifted by a slowly varying offset, looking a bit aside.
+    heading = rng.uniform(0, 2 * np.pi)
+    offset = np.array([cfg.test_offset * np.cos(heading), cfg.test_offset * np.sin(heading),
+                       rng.uniform(-0.05, 0.05)])
+    wobble = _Sinusoids(offset, off_wobble[:, None], rng.uniform(0.3, 0.6, (3, 1)),
+                        rng.uniform(0, 2 * np.pi, (3, 1)))
+    a_off = deg(cfg.test_angle_offset)
+    turn = _Sinusoids(rng.uniform(-a_off / 2, a_off / 2, 3) * [1, 1, 0],
+                      np.array([[a_off], [a_off * 0.6], [a_off * 0.3]]),
+                      rng.uniform(0.3, 0.8, (3, 1)), rng.uniform(0, 2 * np.pi, (3, 1)))
+    specs.append((specs[0][0].plus(wobble), specs[0][1].plus(turn), 0))
+    paths: dict[str, np.ndarray] = {}
+    dts: list[tuple[float, float]] = []
+    for name, (pos, ang, like) in zip(names, specs):
+        if like is None:  # calibrated on a fixed window, so shorter sequences are prefixes
+            n = cfg.calibration_frames
+            dt_pos = _time_step(
+                lambda dt, p=pos, a=ang, n=n: motion_steps(_poses(p, a, dt, 0, n))[0], cfg.step_m)
+            dt_ang = _time_step(
+                lambda dt, p=pos, a=ang, n=n: motion_steps(_poses(p, a, 0, dt, n))[1], cfg.step_deg)
+        else:  # the test path keeps its reference's timing, so views follow the positions
+            dt_pos, dt_ang = dts[like]
+        dts.append((dt_pos, dt_ang))
+        paths[name] = _as_written(_poses(pos, ang, dt_pos, dt_ang, cfg.frames))
+    return paths
+
+
+# ----------------------------------------------------------------------------------------------
+# Output
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"640x480"`` -> (640, 480); anything else is a UserError."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m:
+        raise UserError(f"--size must look like 640x480 (WIDTHxHEIGHT), got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def _check_config(cfg: SynthConfig) -> None:
+    if cfg.frames < 1:
+        raise UserError(f"--frames must be a positive number of frames per sequence, got {cfg.frames}")
+    if cfg.width < 16 or cfg.height < 16 or cfg.width % 2 or cfg.height % 2:
+        raise UserError(f"--size must be even and at least 16x16 (the mp4 needs even sizes), "
+                        f"got {cfg.width}x{cfg.height}")
+    if cfg.train_sequences < 2:
+        raise UserError(f"need at least 2 training sequences, got {cfg.train_sequences}")
+    if cfg.fps <= 0 or cfg.step_m <= 0 or cfg.step_deg <= 0:
+        raise UserError("fps, step_m and step_deg must be positive")
+
+
+def _check_output(out: Path, force: bool) -> None:
+    if out.exists() and not force:
+        if not out.is_dir():
+            raise UserError(f"{out} exists and is not a folder; pass --force to replace it")
+        if any(out.iterdir()):
+            raise UserError(f"{out} exists and is not empty; pass --force to replace it")
+
+
+def write_pose(path: Path, T_wc: np.ndarray) -> None:
+    """A 7-Scenes pose file: 4 lines of 4 tab-separated floats (world-from-camera)."""
+    path.write_text("".join("\t".join(_fmt(v) for v in row) + "\t\n" for row in T_wc))
+
+
+def _write_sequence(seq_dir: Path, video: Path, scene: Scene, poses: np.ndarray,
+                    intr: Intrinsics, cfg: SynthConfig, tick: Callable[[], None]) -> None:
+    import cv2
+
+    seq_dir.mkdir()
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), cfg.fps,
+                             (intr.width, intr.height))
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV cannot write an mp4v video to {video}")
+    try:
+        for i, T in enumerate(poses):
+            rgb, depth = render(scene, T, intr, cfg.texture_blur_px)
+            bgr = np.ascontiguousarray(rgb[:, :, ::-1])
+            stem = seq_dir / f"frame-{i:06d}"
+            mm = np.clip(np.rint(depth * 1000.0), 0, 65535).astype(np.uint16)
+            if not (cv2.imwrite(f"{stem}.color.png", bgr) and cv2.imwrite(f"{stem}.depth.png", mm)):
+                raise RuntimeError(f"could not write {stem}.*.png")
+            write_pose(Path(f"{stem}.pose.txt"), T)
+            writer.write(bgr)
+            tick()
+    finally:
+        writer.release()
+
+
+def generate_scene(out_dir: str | Path, cfg: SynthConfig = SynthConfig(), *, force: bool = False,
+                   progress: Callable[[int], None] | None = None) -> dict:
+    """Write the scene to ``out_dir`` in the 7-Scenes layout and return a summary dict.
+
+    Writes ``seq-XX/frame-XXXXXX.{color.png,depth.png,pose.txt}``, ``TrainSplit.txt``,
+    ``TestSplit.txt``, ``intrinsics.yaml``, ``videos/seq-XX.mp4`` and ``synth.json`` (config and
+    motion statistics), into a temporary folder beside ``out_dir`` renamed at the end.
+    ``progress(n)`` is called with the number of frames written so far (of frames x sequences).
+    """
+    import yaml
+
+    _check_config(cfg)
+    out = Path(out_dir)
+    _check_output(out, force)
+    start = time.perf_counter()
+    intr = SEVEN_SCENES_INTRINSICS.scaled(cfg.width, cfg.height)
+    scene = build_scene(cfg.seed, cfg)
+    paths = camera_paths(cfg)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    done = 0
+
+    def tick() -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done)
+
+    sequences = []
+    try:
+        (tmp / "videos").mkdir()
+        for i, (name, poses) in enumerate(paths.items()):
+            _write_sequence(tmp / name, tmp / "videos" / f"{name}.mp4", scene, poses, intr, cfg, tick)
+            trans, rot = motion_steps(poses)
+            split = "train" if i < cfg.train_sequences else "test"
+            sequences.append({
+                "name": name, "split": split, "frames": len(poses),
+                "median_step_cm": float(np.median(trans) * 100) if len(trans) else 0.0,
+                "median_step_deg": float(np.median(rot)) if len(rot) else 0.0,
+            })
+        train = "".join(f"sequence{i + 1}\n" for i in range(cfg.train_sequences))
+        (tmp / "TrainSplit.txt").write_text(train)
+        (tmp / "TestSplit.txt").write_text(f"sequence{cfg.train_sequences + 1}\n")
+        (tmp / "intrinsics.yaml").write_text(
+            "# pinhole intrinsics of the colour images (pixels; 7-Scenes RGB camera, scaled)\n"
+            + yaml.safe_dump(intr.to_dict(), sort_keys=False))
+        summary = {"out": str(out), "config": asdict(cfg), "intrinsics": intr.to_dict(),
+                   "sequences": sequences}
+        (tmp / "synth.json").write_text(json.dumps(summary, indent=2) + "\n")
+        _replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    summary["seconds"] = time.perf_counter() - start
+    log.info("wrote %d frames to %s in %.1f s", done, out, summary["seconds"])
+    return summary
+
+
+def _replace(tmp: Path, out: Path) -> None:
+    """Move the finished ``tmp`` to ``out``, replacing what is there (checked beforehand)."""
+    if out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+    if out.exists() or out.is_symlink():
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        os.replace(out, old)
+        os.replace(tmp, out)
+        if old.is_dir() and not old.is_symlink():
+            shutil.rmtree(old)
+        else:
+            old.unlink()
+    else:
+        os.replace(tmp, out)

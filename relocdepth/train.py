@@ -1,0 +1,524 @@
+"""The training loop: sample -> forward + losses -> step -> log -> checkpoint, over named steps.
+
+``train(shards, run_dir, cfg)`` trains the depth and DSC networks on a shard dataset's training
+split with the paper's recipe (Sec. IV-B), writing ``run_dir/config.json``, ``logs/train.jsonl``
+and versioned checkpoints. Under ``torchrun`` every rank draws its own triplets and rank 0 alone
+writes. Faults: a non-finite loss skips the step (``max_nonfinite`` in a row stop the run), an
+unreadable frame drops its triplet from the batch, a kill leaves the newest complete checkpoint,
+Ctrl-C / SIGTERM stop after the current step with a final checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import random
+import signal
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import relocdepth
+from relocdepth import checkpoint as ckpt_io
+from relocdepth.data import AugmentConfig, ImageFrames, TripletData, make_loader
+from relocdepth.distributed import (
+    Dist,
+    any_rank,
+    init_distributed,
+    parameter_digest,
+    shutdown_distributed,
+)
+from relocdepth.errors import UserError
+from relocdepth.sampler import SamplerConfig, TripletSampler
+from relocdepth.trainlog import TrainLog
+
+log = logging.getLogger(__name__)
+
+CONFIG_NAME = "config.json"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    size: tuple[int, int] = (640, 480)  # paper IV-B: 640x480 (W, H), multiples of 32
+    epochs: int = 300  # paper IV-B: "within 300 epochs"
+    batch_size: int = 6  # paper IV-B: batch size 6
+    lr: float = 1e-4  # paper IV-B: Adam, learning rate 0.0001
+    beta1: float = 0.9  # paper IV-B: beta1 = 0.9
+    beta2: float = 0.999  # paper IV-B: beta2 = 0.999
+    window: int = 20  # paper IV-B: nearby frames within 20 steps
+    window_seconds: float | None = None  # issue 4: window from timestamps instead of frames
+    global_epochs: int = 100  # paper IV-B: global pairs in the latter 100 epochs
+    global_prob: float = 0.5  # paper IV-B: ... for 50 %
+    window_schedule: tuple[tuple[int, int], ...] = ()  # issue 6 hook: ((epoch, window), ...)
+    scale_min: float = 1.0  # paper IV-B: scale 1.0-1.1 and crop back
+    scale_max: float = 1.1
+    brightness: float = 0.2  # paper IV-B: colour jitter +-0.2 / 0.2 / 0.2 / 0.1
+    contrast: float = 0.2
+    saturation: float = 0.2
+    hue: float = 0.1
+    jitter_per_image: bool = False  # DESIGN.md: one jitter draw per triplet (monodepth2)
+    lcvs: bool = True  # paper III-C: loop-closed view synthesis (False: w/o LCVS ablation)
+    use_dsc: bool = True  # paper III-B: DSC network (False: w/o DSC ablation, absolute pose head)
+    pretrained: str | None = "imagenet"  # paper: ImageNet encoder; a path, "imagenet" or None
+    alpha: float = 0.85  # paper III-A / monodepth2: SSIM weight
+    w_s: float = 0.001  # paper IV-B: smoothness weight
+    w_c: float = 0.03  # paper IV-B: pose coordinate weight
+    seed: int = 0
+    workers: int = 2  # DataLoader worker processes (0: load in the training process)
+    device: str = "auto"  # auto | cpu | cuda
+    amp: bool = False  # CUDA/CPU autocast
+    amp_dtype: str = "bf16"  # bf16 | fp16 (fp16 uses a GradScaler)
+    channels_last: bool = False  # CUDA memory format for the convolutions
+    max_steps: int | None = None  # stop after this many steps (None: run all epochs)
+    log_every: int = 10  # JSONL/TensorBoard every N steps
+    checkpoint_every: int = 500  # steps between checkpoints (plus one at the end)
+    keep_last: int = 3  # checkpoints kept (older ones deleted)
+    max_nonfinite: int = 20  # issue 4: this many non-finite losses in a row stop the run
+    progress: bool = True  # rich progress bar on rank 0
+    resume: bool = False  # continue the run in run_dir from its latest checkpoint
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1:
+            raise UserError(f"--batch-size must be >= 1, not {self.batch_size}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise UserError(f"--lr must be a positive number, not {self.lr}")
+        if self.amp_dtype not in ("bf16", "fp16"):
+            raise UserError(f"--amp-dtype must be bf16 or fp16, not {self.amp_dtype!r}")
+        for name in ("log_every", "checkpoint_every", "max_nonfinite"):
+            if getattr(self, name) < 1:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+        if self.max_steps is not None and self.max_steps < 0:
+            raise UserError("--max-steps must be >= 0")
+        self.augment_config()  # validates the size
+        self.sampler_config()
+
+    def sampler_config(self) -> SamplerConfig:
+        return SamplerConfig(self.window, self.window_seconds, self.epochs, self.global_epochs,
+                             self.global_prob, self.seed, self.window_schedule)
+
+    def augment_config(self) -> AugmentConfig:
+        return AugmentConfig(self.size[0], self.size[1], self.scale_min, self.scale_max, self.brightness,
+                             self.contrast, self.saturation, self.hue, self.jitter_per_image)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        d = {k: v for k, v in d.items() if k in known}
+        if "size" in d:
+            d["size"] = tuple(d["size"])
+        if "window_schedule" in d:
+            d["window_schedule"] = tuple(tuple(x) for x in d["window_schedule"])
+        return cls(**d)
+
+
+# Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
+RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "max_steps", "log_every",
+                      "checkpoint_every", "keep_last", "max_nonfinite", "progress", "resume", "epochs")
+
+
+@dataclass
+class RunState:
+    """What changes as training runs (all of it goes into the checkpoint)."""
+
+    step: int = 0
+    epoch: int = 0
+    position: int = 0  # triplets of `epoch` this rank has consumed
+    nonfinite_skipped: int = 0
+    nonfinite_streak: int = 0
+    samples_skipped: int = 0
+    last_checkpoint: str | None = None
+    stop: str | None = None  # why the loop ended early
+    timing: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class Trainer:
+    """The objects the named steps share (built once by :func:`setup`)."""
+
+    cfg: TrainConfig
+    run_dir: Path
+    dist: Dist
+    device: Any
+    frames: ImageFrames
+    sampler: TripletSampler
+    data: TripletData
+    nets: Any  # relocdepth.models.Networks
+    loss_module: Any  # the (DDP-wrapped) module whose forward returns triplet_loss(...)
+    optimizer: Any
+    scaler: Any
+    method_cfg: Any
+    model_cfg: Any
+    log: TrainLog
+
+
+# -- setup -----------------------------------------------------------------------------------------
+def _method_and_model_configs(cfg: TrainConfig) -> tuple[Any, Any]:
+    from relocdepth.method import MethodConfig
+    from relocdepth.models import ModelConfig
+
+    def build(cls: Any, values: dict[str, Any]) -> Any:
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in values.items() if k in names})
+
+    common = {"lcvs": cfg.lcvs, "use_dsc": cfg.use_dsc, "alpha": cfg.alpha, "w_s": cfg.w_s, "w_c": cfg.w_c}
+    return build(MethodConfig, common), build(ModelConfig, {"pretrained": cfg.pretrained, "use_dsc": cfg.use_dsc})
+
+
+class _LossModule:
+    """Created lazily as an nn.Module subclass so that DDP wraps the loss computation (a DDP
+    wrapper only synchronises gradients for work done through its own forward)."""
+
+    @staticmethod
+    def build(nets: Any, method_cfg: Any) -> Any:
+        import torch
+
+        from relocdepth.method import triplet_loss
+
+        class TripletLossModule(torch.nn.Module):
+            def __init__(self) -> None:
+                super().__init__()
+                self.nets = nets
+
+            def forward(self, images: Any, inputs: Any, K: Any) -> Any:
+                return triplet_loss(self.nets, images, inputs, K, method_cfg)
+
+        return TripletLossModule()
+
+
+def _resolve_config(cfg: TrainConfig, run_dir: Path) -> tuple[TrainConfig, dict | None, Path | None]:
+    """The config to use and the checkpoint to resume (None when starting fresh)."""
+    latest = ckpt_io.latest_checkpoint(run_dir) if run_dir.exists() else None
+    if not cfg.resume:
+        if latest is not None:
+            raise UserError(
+                f"{run_dir} already holds checkpoints (latest {latest.name}); pass --resume to continue "
+                "that run, or choose another -o"
+            )
+        return cfg, None, None
+    if latest is None:
+        raise UserError(f"nothing to resume: {run_dir} holds no checkpoint; drop --resume to start a run")
+    ck = ckpt_io.load_checkpoint(latest)
+    saved = TrainConfig.from_dict(ck["meta"]["train"])
+    overrides = {k: getattr(cfg, k) for k in RUN_CONTROL_FIELDS}
+    ignored = [k for k in asdict(cfg) if k not in overrides and getattr(cfg, k) != getattr(saved, k)]
+    if ignored:
+        log.warning("resuming %s: keeping the run's %s (given values ignored)", run_dir, ", ".join(ignored))
+    return dataclasses.replace(saved, **overrides), ck, latest
+
+
+def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer, RunState]:
+    import torch
+
+    frames = ImageFrames.open(shards)  # user errors before anything is written
+    cfg, ck, ck_path = _resolve_config(cfg, run_dir)
+    if ck is not None:
+        ckpt_io.check_same_dataset(ck["meta"], frames.manifest_hash, ck_path)  # type: ignore[arg-type]
+    dist, device = init_distributed(cfg.device)
+    torch.manual_seed(cfg.seed)  # same initial weights on every rank
+    random.seed(cfg.seed)
+    np.random.seed(cfg.seed % 2**32)
+    sampler = TripletSampler(frames.keys(), cfg.sampler_config(), dist.rank, dist.world_size)
+    data = TripletData(frames, cfg.augment_config())
+    method_cfg, model_cfg = _method_and_model_configs(cfg)
+    from relocdepth.models import build_networks
+
+    nets = build_networks(model_cfg).to(device)
+    if cfg.channels_last:
+        nets = nets.to(memory_format=torch.channels_last)
+    optimizer = torch.optim.Adam(nets.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
+    use_scaler = cfg.amp and cfg.amp_dtype == "fp16" and device.type == "cuda"
+    scaler = torch.amp.GradScaler("cuda", enabled=use_scaler)
+    state = RunState()
+    if ck is not None:
+        _restore(ck, nets, optimizer, scaler, state)
+        log.info("resuming %s at step %d (epoch %d, triplet %d)", ck_path, state.step, state.epoch, state.position)
+    loss_module = _LossModule.build(nets, method_cfg)
+    if dist.enabled:
+        from torch.nn.parallel import DistributedDataParallel as DDP
+
+        loss_module = DDP(loss_module, device_ids=[device.index] if device.type == "cuda" else None)
+    if dist.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        ckpt_io.atomic_write_json(run_dir / CONFIG_NAME, {
+            "tool_version": relocdepth.__version__, "shards": str(shards), "world_size": dist.world_size,
+            "train": cfg.to_dict(), "method": asdict(method_cfg), "model": asdict(model_cfg),
+        })
+    total = _total_steps(sampler, cfg)
+    tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs)
+    tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
+                 method_cfg, model_cfg, tlog)
+    return tr, state
+
+
+def _total_steps(sampler: TripletSampler, cfg: TrainConfig) -> int:
+    total = 0
+    for e in range(cfg.epochs):
+        total += math.ceil(math.ceil(len(sampler.targets(e)) / sampler.world_size) / cfg.batch_size)
+        if cfg.max_steps is not None and total >= cfg.max_steps:
+            return cfg.max_steps
+    return total
+
+
+# -- checkpoint state ------------------------------------------------------------------------------
+def _rng_state() -> dict[str, Any]:
+    import torch
+
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(cached)],
+        "python": random.getstate(),
+    }
+
+
+def _set_rng_state(s: dict[str, Any]) -> None:
+    import torch
+
+    torch.set_rng_state(s["torch"])
+    if s["cuda"] and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(s["cuda"])
+    name, keys, pos, has_gauss, cached = s["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    v, internal, gauss = s["python"]
+    random.setstate((v, tuple(internal), gauss))
+
+
+def _restore(ck: dict[str, Any], nets: Any, optimizer: Any, scaler: Any, state: RunState) -> None:
+    nets.load_state_dict(ck["model"])
+    optimizer.load_state_dict(ck["optimizer"])
+    if ck.get("scaler"):
+        scaler.load_state_dict(ck["scaler"])
+    meta = ck["meta"]
+    state.step, state.epoch, state.position = meta["step"], meta["epoch"], meta["position"]
+    counters = meta.get("counters", {})
+    state.nonfinite_skipped = counters.get("nonfinite_skipped", 0)
+    state.samples_skipped = counters.get("samples_skipped", 0)
+    _set_rng_state(ck["rng"])
+
+
+def checkpoint(tr: Trainer, state: RunState) -> None:
+    """Named step: write a checkpoint of the current state (rank 0)."""
+    if not tr.dist.is_main:
+        return
+    f0 = tr.frames.frames[0]
+    W, H = tr.cfg.size
+    meta = {
+        "format": ckpt_io.FORMAT, "format_version": ckpt_io.FORMAT_VERSION,
+        "tool_version": relocdepth.__version__,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "step": state.step, "epoch": state.epoch, "position": state.position,
+        "manifest_hash": tr.frames.manifest_hash,
+        "dataset": {"name": tr.frames.name, "root": tr.frames.root},
+        "input_size": [W, H], "intrinsics": f0.intrinsics.scaled(W, H).to_dict(), "intrinsics_policy": "resize",
+        "model": asdict(tr.model_cfg), "method": asdict(tr.method_cfg), "train": tr.cfg.to_dict(),
+        "world_size": tr.dist.world_size,
+        "counters": {"nonfinite_skipped": state.nonfinite_skipped, "samples_skipped": state.samples_skipped},
+        "alignment": None,
+    }
+    path = ckpt_io.save_checkpoint(tr.run_dir, {
+        "meta": meta, "model": tr.nets.state_dict(), "optimizer": tr.optimizer.state_dict(),
+        "scaler": tr.scaler.state_dict() if tr.scaler.is_enabled() else None,
+        "sampler": {"epoch": state.epoch, "position": state.position}, "rng": _rng_state(),
+    }, keep_last=tr.cfg.keep_last)
+    state.last_checkpoint = str(path)
+    tr.log.event("checkpoint", state.step, path=path.name)
+
+
+# -- the named steps -------------------------------------------------------------------------------
+def sample(tr: Trainer, state: RunState, batch: dict[str, Any]) -> dict[str, Any] | None:
+    """Named step: account for unreadable frames and move the batch to the device as floats."""
+    for key, err in batch["skipped"]:
+        state.samples_skipped += 1
+        log.warning("skipping an unreadable frame %s (%s); %d skipped so far", key, err, state.samples_skipped)
+        tr.log.event("skipped_sample", state.step, key=key, error=err)
+    if "images" not in batch:
+        return None
+    dev = tr.device
+    nb = dev.type == "cuda"
+    return {
+        "images": batch["images"].to(dev, non_blocking=nb).float().div_(255.0),
+        "inputs": batch["inputs"].to(dev, non_blocking=nb).float().div_(255.0),
+        "K": batch["K"].to(dev, non_blocking=nb),
+        "n": int(batch["images"].shape[0]),
+        "global_frac": batch["global_frac"],
+    }
+
+
+def forward_losses(tr: Trainer, b: dict[str, Any]) -> tuple[Any, dict[str, Any], dict[str, float]]:
+    """Named step: both networks on the triplets, the paper's loss, its parts and diagnostics."""
+    import torch
+
+    dtype = torch.bfloat16 if tr.cfg.amp_dtype == "bf16" else torch.float16
+    with torch.autocast(tr.device.type, dtype=dtype, enabled=tr.cfg.amp):
+        return tr.loss_module(b["images"], b["inputs"], b["K"])
+
+
+def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
+    """Named step: backward + Adam unless the loss is non-finite on any rank (then skip, count)."""
+    import torch
+
+    nonfinite = any_rank(tr.dist, [not bool(torch.isfinite(loss.detach()).item())], tr.device)[0]
+    tr.optimizer.zero_grad(set_to_none=True)
+    if nonfinite:
+        if tr.dist.enabled:  # every rank must join the gradient all-reduce; the result is dropped
+            tr.scaler.scale(loss * 0.0).backward()
+            tr.optimizer.zero_grad(set_to_none=True)
+        state.nonfinite_skipped += 1
+        state.nonfinite_streak += 1
+        log.warning("non-finite loss at step %d: step skipped (%d in a row)", state.step, state.nonfinite_streak)
+        tr.log.event("nonfinite_loss", state.step, streak=state.nonfinite_streak, loss=float(loss.detach()))
+        return False
+    tr.scaler.scale(loss).backward()
+    tr.scaler.step(tr.optimizer)
+    tr.scaler.update()
+    state.nonfinite_streak = 0
+    return True
+
+
+def log_step(tr: Trainer, state: RunState, loss: Any, parts: dict[str, Any], diag: dict[str, float],
+             rate: float, global_frac: float) -> None:
+    """Named step: the JSONL/TensorBoard record (every ``log_every`` steps)."""
+    tr.log.step({
+        "step": state.step, "epoch": state.epoch, "loss": float(loss.detach()),
+        "parts": {k: float(v.detach()) if hasattr(v, "detach") else float(v) for k, v in parts.items()},
+        "diagnostics": {k: float(v) for k, v in diag.items()},
+        "lr": tr.optimizer.param_groups[0]["lr"], "triplets_per_s": rate, "global_pair_frac": global_frac,
+        "nonfinite_skipped": state.nonfinite_skipped, "samples_skipped": state.samples_skipped,
+    })
+
+
+# -- the loop --------------------------------------------------------------------------------------
+class _StopRequest:
+    """First Ctrl-C / SIGTERM asks to stop after the current step; a second one aborts."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> _StopRequest:  # noqa: PYI034
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        log.warning("stop requested: finishing this step and writing a checkpoint (again to abort)")
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def _epoch_batches(tr: Trainer, state: RunState, stop: _StopRequest):
+    """Yield this rank's batches of the current epoch from ``state.position``; on a stop request
+    a dying worker's error ends the epoch quietly."""
+    loader = make_loader(tr.data, tr.sampler, state.epoch, state.position, tr.cfg.batch_size,
+                         tr.cfg.workers, pin_memory=tr.device.type == "cuda")
+    it = iter(loader)
+    while True:
+        try:
+            yield next(it)
+        except StopIteration:
+            return
+        except Exception:
+            if stop.requested:
+                return
+            raise
+
+
+def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
+    cfg = tr.cfg
+    last_t, last_n = time.perf_counter(), 0
+    rate: float | None = None
+    while state.epoch < cfg.epochs:
+        if cfg.max_steps is not None and state.step >= cfg.max_steps:
+            state.stop = "max_steps"
+            return
+        if state.position >= tr.sampler.epoch_length(state.epoch):
+            state.epoch, state.position = state.epoch + 1, 0
+            continue
+        for raw in _epoch_batches(tr, state, stop):
+            b = sample(tr, state, raw)
+            no_data, stopping = any_rank(tr.dist, [b is None, stop.requested], tr.device)
+            if stopping:
+                state.stop = "interrupted"
+                return
+            if no_data:
+                tr.log.event("empty_batch", state.step)
+            else:
+                loss, parts, diag = forward_losses(tr, b)
+                stepped = optimizer_step(tr, state, loss)
+                if not stepped and state.nonfinite_streak >= cfg.max_nonfinite:
+                    state.stop = "diverged"
+                    return
+                last_n += b["n"]
+            state.step += 1
+            state.position += raw["attempted"]
+            now = time.perf_counter()
+            if now - last_t > 0.5 or rate is None:
+                rate = last_n * tr.dist.world_size / max(now - last_t, 1e-9)
+                last_t, last_n = now, 0
+            cur_loss = None if no_data else float(loss.detach())
+            if not no_data and (state.step % cfg.log_every == 0 or state.step == 1):
+                log_step(tr, state, loss, parts, diag, rate, b["global_frac"])
+            tr.log.tick(state.step, state.epoch, cur_loss, rate)
+            if state.step % cfg.checkpoint_every == 0:
+                checkpoint(tr, state)
+            if cfg.max_steps is not None and state.step >= cfg.max_steps:
+                state.stop = "max_steps"
+                return
+        if state.position >= tr.sampler.epoch_length(state.epoch):
+            state.epoch, state.position = state.epoch + 1, 0
+    state.stop = "epochs"
+
+
+def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfig()) -> dict[str, Any]:
+    """Train on ``shards`` into ``run_dir``; returns a summary (steps, stop reason, checkpoint...).
+
+    Raises :class:`UserError` for bad inputs and when the loss diverges (``max_nonfinite``
+    non-finite losses in a row; the last good checkpoint stays the newest).
+    """
+    run_dir = Path(run_dir)
+    tr, state = setup(shards, run_dir, cfg)
+    start_step = state.step
+    tr.log.event("resume" if tr.cfg.resume else "start", state.step, world_size=tr.dist.world_size,
+                 device=str(tr.device), pretrained=tr.cfg.pretrained)
+    t0 = time.perf_counter()
+    try:
+        with _StopRequest() as stop:
+            run_loop(tr, state, stop)
+        if state.stop != "diverged" and (state.last_checkpoint is None or state.step % tr.cfg.checkpoint_every):
+            checkpoint(tr, state)
+        tr.log.event("stop", state.step, reason=state.stop)
+    finally:
+        tr.log.close()
+        digest = parameter_digest(tr.nets)
+        log.info("rank %d: final parameters sha256 %s", tr.dist.rank, digest)
+        shutdown_distributed(tr.dist)
+    latest = ckpt_io.latest_checkpoint(run_dir) if tr.dist.is_main else None
+    if state.stop == "diverged":
+        raise UserError(
+            f"training diverged: {state.nonfinite_streak} non-finite losses in a row at step {state.step}; "
+            f"the last good checkpoint is {latest or 'none'}; try a lower --lr"
+        )
+    elapsed = time.perf_counter() - t0
+    return {
+        "run_dir": str(run_dir), "steps": state.step, "steps_this_run": state.step - start_step,
+        "epoch": state.epoch, "position": state.position, "stop": state.stop,
+        "checkpoint": str(latest) if latest else None, "seconds": round(elapsed, 2),
+        "nonfinite_skipped": state.nonfinite_skipped, "samples_skipped": state.samples_skipped,
+        "param_digest": digest, "rank": tr.dist.rank, "world_size": tr.dist.world_size,
+    }

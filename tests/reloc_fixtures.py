@@ -1,0 +1,31 @@
+"""A run trained for one step on the shared synth shards, built once per session and shared by
+the localize and evaluate tests (a module-level cache: both test modules import this one)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+_CACHE: dict[str, Path] = {}
+
+
+def trained_run(shards: Path, factory: pytest.TempPathFactory) -> Path:
+    """A run folder with one checkpoint (1 step, batch 1, 128x96, random init). Read-only:
+    copy it (:func:`copy_run`) before saving an alignment into it."""
+    key = str(shards)
+    if key not in _CACHE:
+        from relocdepth.train import TrainConfig, train
+
+        run = factory.mktemp("run") / "run"
+        cfg = TrainConfig(size=(128, 96), batch_size=1, max_steps=1, pretrained=None, workers=0,
+                          progress=False, window=3)
+        train(shards, run, cfg)
+        _CACHE[key] = run
+    return _CACHE[key]
+
+
+def copy_run(run: Path, dest: Path) -> Path:
+    shutil.copytree(run, dest)
+    return dest

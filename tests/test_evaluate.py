@@ -1,0 +1,95 @@
+"""Evaluate: the protocol's numbers on hand-built cases, and `reloc evaluate` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from relocdepth import metrics as M
+from relocdepth.evaluate import baselines_report, pose_report
+from relocdepth.schemas import validate
+from relocdepth.trajectory import quat_to_rotmat
+
+
+def trajectory(n: int, seed: int, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """A wandering camera: smooth centres over ~1 m, rotations up to ~40 deg."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0, 2 * np.pi, n)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, 3] = np.stack([np.cos(s + seed), 0.5 * np.sin(2 * s), 0.2 * s], 1) + offset
+    axis = rng.normal(size=3)
+    for i, a in enumerate(s):
+        q = np.r_[np.sin(0.3 * np.sin(a)) * axis / np.linalg.norm(axis), np.cos(0.3 * np.sin(a))]
+        T[i, :3, :3] = quat_to_rotmat(q)
+    return T
+
+
+def sim3(T: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return M.apply_sim3(s, R, t, T)
+
+
+R0 = quat_to_rotmat(np.array([0.3, -0.2, 0.5, 0.8]))
+T0 = np.array([2.0, -1.0, 0.5])
+
+
+def test_known_sim3_gives_zero_error() -> None:
+    train_gt, test_gt = trajectory(30, 0), trajectory(12, 1, offset=(0.1, 0.0, 0.0))
+    # the "network" predicts the GT in another frame and unit: x_net = (R0^T (x - T0)) / 3
+    R_inv, s_inv = R0.T, 1.0 / 3.0
+    to_net = (s_inv, R_inv, -s_inv * R_inv @ T0)
+    report, (s, R, t), aligned = pose_report(
+        sim3(train_gt, *to_net), train_gt, sim3(test_gt, *to_net), test_gt, ["seq-03"] * 12
+    )
+    assert s == pytest.approx(3.0)
+    np.testing.assert_allclose(R, R0, atol=1e-9)
+    np.testing.assert_allclose(t, T0, atol=1e-9)
+    np.testing.assert_allclose(aligned, test_gt, atol=1e-9)
+    assert report["test"]["median_t_m"] == pytest.approx(0.0, abs=1e-9)
+    assert report["test"]["median_r_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert report["test"]["pct_5cm_5deg"] == 100.0
+    assert report["rotation_only"]["median_r_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert report["relative"]["median_t_m"] == pytest.approx(0.0, abs=1e-9)
+    assert report["relative"]["identity_median_t_m"] > 0.05
+    assert report["spread"]["prediction_raw"]["centre_rms"] == pytest.approx(
+        report["spread"]["ground_truth"]["centre_rms"] / 3.0)
+
+
+def test_constructed_test_errors_of_known_size() -> None:
+    train_gt, test_gt = trajectory(30, 0), trajectory(10, 1)
+    test_est = test_gt.copy()
+    # frames 0-4: 4 cm off along x; frames 5-9: 8 deg off about the camera's z
+    test_est[:5, :3, 3] += [0.04, 0.0, 0.0]
+    test_est[5:, :3, :3] = test_est[5:, :3, :3] @ quat_to_rotmat(
+        np.r_[0.0, 0.0, np.sin(np.radians(4.0)), np.cos(np.radians(4.0))])
+    report, (s, _, _), _ = pose_report(train_gt, train_gt, test_est, test_gt, ["a"] * 5 + ["b"] * 5)
+    assert s == pytest.approx(1.0)
+    assert report["per_sequence"]["a"]["median_t_m"] == pytest.approx(0.04)
+    assert report["per_sequence"]["a"]["median_r_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert report["per_sequence"]["b"]["median_r_deg"] == pytest.approx(8.0)
+    assert report["test"]["pct_5cm_5deg"] == 50.0
+    assert report["test"]["pct_10cm_10deg"] == 100.0
+    assert report["train"]["median_t_m"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_baselines() -> None:
+    train_gt = trajectory(20, 0)
+    test_gt = train_gt[[2, 7, 11]].copy()
+    test_gt[:, :3, 3] += [0.0, 0.02, 0.0]  # 2 cm from training frames 2, 7, 11
+    rng = np.random.default_rng(0)
+    thumbs = np.stack([M.thumbnail(rng.integers(0, 255, (24, 32))) for _ in range(20)])
+    out = baselines_report(train_gt, test_gt, thumbs, thumbs[[2, 7, 11]])
+    assert out["retrieval"]["median_t_m"] == pytest.approx(0.02)
+    assert out["retrieval"]["median_r_deg"] == pytest.approx(0.0, abs=1e-4)
+    mean_c = train_gt[:, :3, 3].mean(0)
+    expect = np.median(np.linalg.norm(test_gt[:, :3, 3] - mean_c, axis=1))
+    assert out["mean_pose"]["median_t_m"] == pytest.approx(expect)
+
+
+def test_report_schema_rejects_missing_fields() -> None:
+    from relocdepth.errors import UserError
+
+    with pytest.raises(UserError, match="report"):
+        validate("report", {"format": "relocdepth-report"}, what="report")
+    json.dumps({})  # keep the import used

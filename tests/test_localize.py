@@ -1,0 +1,122 @@
+"""`reloc localize` on a run trained for one step: proper rotations, determinism, outputs, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from reloc_fixtures import copy_run, trained_run
+from typer.testing import CliRunner
+
+from relocdepth.camera import Intrinsics
+from relocdepth.cli.main import app
+from relocdepth.ingest.intrinsics import write_intrinsics_yaml
+from relocdepth.trajectory import quat_to_rotmat, read_tum
+
+FRAMES = 24  # tests/conftest.py SCENE_FRAMES
+
+
+@pytest.fixture(scope="module")
+def run(synth_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return trained_run(synth_shards, tmp_path_factory)
+
+
+def invoke(*args: str):
+    return CliRunner().invoke(app, ["localize", *args])
+
+
+def records(result) -> list[dict]:
+    assert result.exit_code == 0, result.output
+    return [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
+
+
+def assert_user_error(result, *words: str) -> None:
+    assert result.exit_code == 2, result.output
+    last = result.output.strip().splitlines()[-1]
+    assert last.startswith("error: "), result.output
+    assert "Traceback" not in result.output
+    for w in words:
+        assert w in last, last
+
+
+def test_folder_gives_proper_rotations_and_is_deterministic(run: Path, synth_scene: Path) -> None:
+    folder = synth_scene / "seq-03"  # holds .color.png, .depth.png and .pose.txt files
+    first = invoke(str(folder), "--checkpoint", str(run), "--batch-size", "5")
+    recs = records(first)
+    assert [r["name"] for r in recs] == [f"frame-{i:06d}" for i in range(FRAMES)]
+    for r in recs:
+        T = np.array(r["T_wc"])
+        R = T[:3, :3]
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-6)
+        np.testing.assert_allclose(T[3], [0, 0, 0, 1])
+        np.testing.assert_allclose(quat_to_rotmat(np.array(r["q"])), R, atol=1e-6)
+        np.testing.assert_allclose(r["t"], T[:3, 3])
+        assert 0.0 < r["confidence"] <= 1.0
+        assert r["aligned"] is False and r["units"] == "network"
+    again = invoke(str(folder), "--checkpoint", str(run), "--batch-size", "5")
+    assert again.stdout == first.stdout
+
+
+def test_tum_output_parses_back(run: Path, synth_scene: Path, tmp_path: Path) -> None:
+    folder = synth_scene / "seq-03"
+    recs = records(invoke(str(folder), "--checkpoint", str(run)))
+    out = tmp_path / "traj.tum"
+    res = invoke(str(folder), "--checkpoint", str(run), "--format", "tum", "--output", str(out))
+    assert res.exit_code == 0, res.output
+    ts, T = read_tum(out)
+    np.testing.assert_allclose(ts, np.arange(FRAMES))
+    np.testing.assert_allclose(T, np.array([r["T_wc"] for r in recs]), atol=1e-6)
+
+
+def test_video_and_depth_outputs(run: Path, synth_scene: Path, tmp_path: Path) -> None:
+    video = synth_scene / "videos" / "seq-03.mp4"
+    recs = records(invoke(str(video), "--checkpoint", str(run), "--depth-out", str(tmp_path / "d"),
+                          "--batch-size", "16"))
+    assert len(recs) == FRAMES
+    np.testing.assert_allclose([r["timestamp"] for r in recs], np.arange(FRAMES) / 30.0, atol=1e-6)
+    depth = cv2.imread(recs[3]["depth_png"], cv2.IMREAD_UNCHANGED)
+    assert depth.dtype == np.uint16 and depth.shape == (96, 128)
+    assert (depth > 0).all()
+    assert cv2.imread(recs[3]["depth_preview"]).shape == (96, 128, 3)
+    assert sorted(p.name for p in (tmp_path / "d").iterdir() if p.name.startswith(".")) == []
+
+
+def test_other_aspect_needs_K(run: Path, synth_scene: Path, tmp_path: Path) -> None:
+    img = cv2.imread(str(synth_scene / "seq-03" / "frame-000000.color.png"))
+    square = tmp_path / "square.png"
+    cv2.imwrite(str(square), img[:, :96])
+    assert_user_error(invoke(str(square), "--checkpoint", str(run)), "--K")
+    K = tmp_path / "K.yaml"
+    write_intrinsics_yaml(K, Intrinsics(100.0, 100.0, 47.5, 47.5, 96, 96))
+    assert len(records(invoke(str(square), "--checkpoint", str(run), "--K", str(K)))) == 1
+
+
+def test_default_checkpoint_is_newest_run(run: Path, synth_scene: Path, tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    img = str(synth_scene / "seq-03" / "frame-000000.color.png")
+    monkeypatch.chdir(tmp_path)
+    assert_user_error(invoke(img), "runs")
+    copy_run(run, tmp_path / "runs" / "office")
+    assert len(records(invoke(img))) == 1
+
+
+def test_bad_inputs(run: Path, synth_scene: Path, tmp_path: Path) -> None:
+    img = str(synth_scene / "seq-03" / "frame-000000.color.png")
+    assert_user_error(invoke(img, "--checkpoint", str(tmp_path / "nope")), "does not exist")
+    (tmp_path / "empty_run").mkdir()
+    assert_user_error(invoke(img, "--checkpoint", str(tmp_path / "empty_run")), "no checkpoint")
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    assert_user_error(invoke(str(broken), "--checkpoint", str(run)), "cannot read image")
+    assert_user_error(invoke(str(tmp_path / "missing.png"), "--checkpoint", str(run)), "does not exist")
+    empty = tmp_path / "empty.mp4"
+    writer = cv2.VideoWriter(str(empty), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (128, 96))
+    writer.release()
+    assert_user_error(invoke(str(empty), "--checkpoint", str(run)), "video")
+    (tmp_path / "no_images").mkdir()
+    assert_user_error(invoke(str(tmp_path / "no_images"), "--checkpoint", str(run)), "no images")
+    assert_user_error(invoke(img, "--checkpoint", str(run), "--format", "xml"), "--format")
