@@ -9,7 +9,7 @@ its own) measures:
 - peak RSS of the process (``resource.getrusage``), and RSS after building the networks.
 
 Usage: ``python benchmarks/bench_core.py [--sizes 128x96,256x192,640x480] [--iters 3]
-[--iters-large 2] [--device cpu]``. Prints one table; numbers go to the README (performance).
+[--iters-large 1] [--warmup 1] [--device cpu|cuda]``. Prints one table; numbers go to the README (performance).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_one(width: int, height: int, iters: int, device: str) -> dict:
+def run_one(width: int, height: int, iters: int, warmup: int, device: str) -> dict:
     import torch
 
     from relocdepth.method import MethodConfig, triplet_loss
@@ -60,10 +60,11 @@ def run_one(width: int, height: int, iters: int, device: str) -> dict:
         total.backward()
         nets.zero_grad(set_to_none=True)
 
-    out: dict = {"size": f"{width}x{height}", "images": TRIPLETS * 3, "iters": iters,
+    out: dict = {"size": f"{width}x{height}", "images": TRIPLETS * 3, "iters": iters, "warmup": warmup,
                  "threads": torch.get_num_threads(), "rss_built_mb": rss_built}
     for name, fn in (("nets", nets_step), ("step", loss_step)):
-        fn()  # warm-up (allocator, kernels)
+        for _ in range(warmup):  # allocator, kernels; negligible next to a 640x480 step on CPU
+            fn()
         sync()
         t0 = time.perf_counter()
         for _ in range(iters):
@@ -80,20 +81,24 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="128x96,256x192,640x480")
     ap.add_argument("--iters", type=int, default=3, help="timed iterations per size")
-    ap.add_argument("--iters-large", type=int, default=2, help="timed iterations at >= 640x480")
+    ap.add_argument("--iters-large", type=int, default=1, help="timed iterations at >= 640x480")
+    ap.add_argument("--warmup", type=int, default=1, help="untimed iterations (0 at >= 640x480)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child mode: WxH
     args = ap.parse_args()
     if args.one:
         w, h = (int(v) for v in args.one.split("x"))
-        print(json.dumps(run_one(w, h, args.iters, args.device)))
+        print(json.dumps(run_one(w, h, args.iters, args.warmup, args.device)))
         return
     rows = []
     for size in args.sizes.split(","):
         w, h = (int(v) for v in size.split("x"))
-        iters = args.iters_large if w * h >= LARGE_PIXELS else args.iters
+        large = w * h >= LARGE_PIXELS and args.device == "cpu"
+        iters = args.iters_large if large else args.iters
+        warmup = 0 if large else args.warmup
         res = subprocess.run(
-            [sys.executable, __file__, "--one", size, "--iters", str(iters), "--device", args.device],
+            [sys.executable, __file__, "--one", size, "--iters", str(iters), "--warmup", str(warmup),
+             "--device", args.device],
             check=True, capture_output=True, text=True,
         )
         rows.append(json.loads(res.stdout.strip().splitlines()[-1]))

@@ -580,7 +580,7 @@ def _random_sinusoids(rng: np.random.Generator, centre: np.ndarray, reach: np.nd
                       ) -> _Sinusoids:
     """Three octave-ish components per dimension whose amplitudes sum to ``reach`` (D,)."""
     d = len(centre)
-    rel_amp = np.array([1.0, 0.45, 0.15]) * rng.uniform(0.8, 1.2, (d, 3))
+    rel_amp = np.array([1.0, 0.35, 0.1]) * rng.uniform(0.8, 1.2, (d, 3))
     amp = rel_amp / rel_amp.sum(1, keepdims=True) * np.asarray(reach)[:, None]
     freq = np.array([1.0, 2.3, 4.9]) * rng.uniform(0.7, 1.3, (d, 3))
     return _Sinusoids(np.asarray(centre, float), amp, freq, rng.uniform(0, 2 * np.pi, (d, 3)))

@@ -218,7 +218,7 @@ def test_motion_per_frame_like_handheld_7scenes():
         trans, rot = motion_steps(T)
         assert 0.005 <= np.median(trans) <= 0.010, (name, np.median(trans))
         assert 1.0 <= np.median(rot) <= 2.0, (name, np.median(rot))
-        assert trans.max() < 0.03 and rot.max() < 6.0  # smooth: no jumps
+        assert trans.max() < 0.025 and rot.max() < 8.0  # smooth: pans, but no jumps
 
 
 def test_cameras_keep_clear_of_surfaces_and_test_path_is_near_not_on():

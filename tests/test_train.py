@@ -142,7 +142,7 @@ def test_a_few_steps_lower_the_loss(synth_shards: Path, tmp_path: Path) -> None:
     losses = []
     for _ in range(6):  # the same batch: reliable descent on a shared CPU
         loss, parts, diag = forward_losses(tr, b)
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         assert optimizer_step(tr, state, loss)
     tr.log.close()
     assert losses[-1] < losses[0]
