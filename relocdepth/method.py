@@ -64,23 +64,29 @@ def _check_triplets(images: Tensor, inputs: Tensor, K: Tensor) -> None:
 
 
 def _absolute_poses(
-    nets: Networks, x: Tensor, depth0: Tensor, K: Tensor, use_dsc: bool, aggregate: str
+    net_out: Tensor, depth0: Tensor, K: Tensor, use_dsc: bool, aggregate: str
 ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None, Tensor, Tensor]:
-    """Poses of a flat batch ``x (N, 3, H, W)`` with full-res depth ``depth0 (N, 1, H, W)``.
+    """Poses of a flat batch from the pose network's output (DSC ``(N, 6, h, w)`` or, w/o DSC,
+    ``(N, 6)``) and the full-res depth ``depth0 (N, 1, H, W)``.
 
     Returns ``T_wc (N, 4, 4)``, per-cell ``q (N, n, 4)``, ``c (N, n, 3)`` (None w/o DSC), the
     per-image L_c ``(N,)`` (None w/o DSC) and the aggregate ``q (N, 4)``, ``c (N, 3)``.
     """
     if not use_dsc:
-        p = nets.pose(x)
-        T = geo.pose_vector_to_matrix(p)
-        return T, None, None, None, geo.quat_from_matrix(T[:, :3, :3]), p[:, 3:]
-    dsc = nets.dsc(x)
-    q_cells, c_cells = geo.cell_poses(dsc, geo.pool_depth(depth0), K)
+        T = geo.pose_vector_to_matrix(net_out)
+        return T, None, None, None, geo.quat_from_matrix(T[:, :3, :3]), net_out[:, 3:]
+    q_cells, c_cells = geo.cell_poses(net_out, geo.pool_depth(depth0), K)
     agg = geo.mean_pose if aggregate == "mean" else geo.median_pose
     q, c = agg(q_cells, c_cells)
     l_c = pose_coordinate_loss(q_cells, c_cells, q, c)
     return geo.pose_matrix(q, c), q_cells, c_cells, l_c, q, c
+
+
+def _geometry_dtype(x: Tensor) -> torch.dtype:
+    # Geometry and losses run in at least float32 with autocast off: under AMP the networks may
+    # return bf16/fp16, whose 3 significant digits are far too few for poses and reprojection
+    # (and CUDA has no bf16 eigh).
+    return torch.promote_types(x.dtype, torch.float32)
 
 
 def triplet_loss(
@@ -115,9 +121,20 @@ def triplet_loss(
     _check_triplets(images, inputs, K)
     B, _, C, H, W = images.shape
     x = inputs.reshape(B * 3, C, H, W)
-    Kf = K.reshape(B * 3, 3, 3)
 
-    disps = nets.depth(x)[: cfg.num_scales]
+    dt = _geometry_dtype(images)
+    disps = [d.to(dt) for d in nets.depth(x)[: cfg.num_scales]]
+    pose_out = (nets.dsc(x) if cfg.use_dsc else nets.pose(x)).to(dt)
+    with torch.autocast(images.device.type, enabled=False):
+        return _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg)
+
+
+def _triplet_loss_fp32(
+    disps: list[Tensor], pose_out: Tensor, images: Tensor, K: Tensor, cfg: MethodConfig
+) -> tuple[Tensor, dict[str, Tensor], dict[str, float]]:
+    """The part of :func:`triplet_loss` after the networks (full precision)."""
+    B, _, C, H, W = images.shape
+    Kf = K.reshape(B * 3, 3, 3)
     depths = [
         disp_to_depth(
             d if d.shape[-2:] == (H, W) else F.interpolate(d, (H, W), mode="bilinear", align_corners=False),
@@ -126,7 +143,7 @@ def triplet_loss(
         )
         for d in disps
     ]
-    T, _, _, l_c_img, q_img, c_img = _absolute_poses(nets, x, depths[0], Kf, cfg.use_dsc, "mean")
+    T, _, _, l_c_img, q_img, c_img = _absolute_poses(pose_out, depths[0], Kf, cfg.use_dsc, "mean")
     T = T.reshape(B, 3, 4, 4)
 
     pairs = pairs_for(cfg)
@@ -216,8 +233,12 @@ def predict(nets: Networks, inputs: Tensor, K: Tensor) -> dict[str, Tensor]:
     was_training = nets.training
     nets.eval()
     try:
-        depth = disp_to_depth(nets.depth(inputs)[0], nets.cfg.min_depth, nets.cfg.max_depth)
-        T, q_cells, c_cells, _, q, c = _absolute_poses(nets, inputs, depth, K, nets.cfg.use_dsc, "median")
+        dt = _geometry_dtype(inputs)
+        sigma = nets.depth(inputs)[0].to(dt)
+        pose_out = (nets.dsc(inputs) if nets.cfg.use_dsc else nets.pose(inputs)).to(dt)
+        with torch.autocast(inputs.device.type, enabled=False):
+            depth = disp_to_depth(sigma, nets.cfg.min_depth, nets.cfg.max_depth)
+            T, q_cells, c_cells, _, q, c = _absolute_poses(pose_out, depth, K.to(dt), nets.cfg.use_dsc, "median")
     finally:
         nets.train(was_training)
     B = inputs.shape[0]

@@ -16,12 +16,34 @@ from relocdepth.cli.main import app
 from relocdepth.ingest.intrinsics import write_intrinsics_yaml
 from relocdepth.trajectory import quat_to_rotmat, read_tum
 
-FRAMES = 24  # tests/conftest.py SCENE_FRAMES
+FRAMES = 6  # frames of the query folder / video (few: forward passes are the slow part)
 
 
 @pytest.fixture(scope="module")
 def run(synth_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return trained_run(synth_shards, tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def folder(synth_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 7-Scenes sequence folder with FRAMES frames (colour, depth and pose files)."""
+    out = tmp_path_factory.mktemp("query") / "seq-03"
+    out.mkdir()
+    for i in range(FRAMES):
+        for ext in (".color.png", ".depth.png", ".pose.txt"):
+            name = f"frame-{i:06d}{ext}"
+            (out / name).write_bytes((synth_scene / "seq-03" / name).read_bytes())
+    return out
+
+
+@pytest.fixture(scope="module")
+def video(folder: Path) -> Path:
+    path = folder.parent / "query.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (128, 96))
+    for i in range(FRAMES):
+        writer.write(cv2.imread(str(folder / f"frame-{i:06d}.color.png")))
+    writer.release()
+    return path
 
 
 def invoke(*args: str):
@@ -42,9 +64,8 @@ def assert_user_error(result, *words: str) -> None:
         assert w in last, last
 
 
-def test_folder_gives_proper_rotations_and_is_deterministic(run: Path, synth_scene: Path) -> None:
-    folder = synth_scene / "seq-03"  # holds .color.png, .depth.png and .pose.txt files
-    first = invoke(str(folder), "--checkpoint", str(run), "--batch-size", "5")
+def test_folder_gives_proper_rotations_and_is_deterministic(run: Path, folder: Path) -> None:
+    first = invoke(str(folder), "--checkpoint", str(run), "--batch-size", "4")
     recs = records(first)
     assert [r["name"] for r in recs] == [f"frame-{i:06d}" for i in range(FRAMES)]
     for r in recs:
@@ -57,12 +78,11 @@ def test_folder_gives_proper_rotations_and_is_deterministic(run: Path, synth_sce
         np.testing.assert_allclose(r["t"], T[:3, 3])
         assert 0.0 < r["confidence"] <= 1.0
         assert r["aligned"] is False and r["units"] == "network"
-    again = invoke(str(folder), "--checkpoint", str(run), "--batch-size", "5")
+    again = invoke(str(folder), "--checkpoint", str(run), "--batch-size", "4")
     assert again.stdout == first.stdout
 
 
-def test_tum_output_parses_back(run: Path, synth_scene: Path, tmp_path: Path) -> None:
-    folder = synth_scene / "seq-03"
+def test_tum_output_parses_back(run: Path, folder: Path, tmp_path: Path) -> None:
     recs = records(invoke(str(folder), "--checkpoint", str(run)))
     out = tmp_path / "traj.tum"
     res = invoke(str(folder), "--checkpoint", str(run), "--format", "tum", "--output", str(out))
@@ -72,8 +92,7 @@ def test_tum_output_parses_back(run: Path, synth_scene: Path, tmp_path: Path) ->
     np.testing.assert_allclose(T, np.array([r["T_wc"] for r in recs]), atol=1e-6)
 
 
-def test_video_and_depth_outputs(run: Path, synth_scene: Path, tmp_path: Path) -> None:
-    video = synth_scene / "videos" / "seq-03.mp4"
+def test_video_and_depth_outputs(run: Path, video: Path, tmp_path: Path) -> None:
     recs = records(invoke(str(video), "--checkpoint", str(run), "--depth-out", str(tmp_path / "d"),
                           "--batch-size", "16"))
     assert len(recs) == FRAMES
