@@ -96,17 +96,25 @@ def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
         trips = list(tr.sampler.iter_epoch(0))[:6]
         raw = collate([tr.data[t] for t in trips])
         full, bare = [], []
+
+        def sync() -> None:
+            if tr.device.type == "cuda":
+                torch.cuda.synchronize()
+
         for _ in range(reps):
+            sync()
             t0 = time.perf_counter()
             b = sample(tr, state, raw)
             loss, parts, diag = forward_losses(tr, b)
             optimizer_step(tr, state, loss)
             log_step(tr, state, loss, parts, diag, 0.0, 0.0)
+            sync()
             full.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
             loss2, _, _ = triplet_loss(tr.nets, b["images"], b["inputs"], b["K"], tr.method_cfg)
             tr.optimizer.zero_grad(set_to_none=True)
             loss2.backward()
+            sync()
             bare.append(time.perf_counter() - t0)
         tr.log.close()
         assert isinstance(state, RunState) and torch.isfinite(loss)

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 from reloc_fixtures import copy_run, trained_run
+from relocdepth.cli.main import app
+from relocdepth.ingest.intrinsics import write_intrinsics_yaml
 from typer.testing import CliRunner
 
 from relocdepth.camera import Intrinsics
-from relocdepth.cli.main import app
-from relocdepth.ingest.intrinsics import write_intrinsics_yaml
 from relocdepth.trajectory import quat_to_rotmat, read_tum
 
 FRAMES = 6  # frames of the query folder / video (few: forward passes are the slow part)

@@ -115,11 +115,16 @@ def test_imagenet_offline_falls_back_to_random_init(
     assert hasattr(nets, "pose") and not hasattr(nets, "dsc")
 
 
+@pytest.fixture(scope="module")
+def three_nets() -> tuple[DepthNet, DSCNet, AbsPoseNet]:
+    return DepthNet().eval(), DSCNet().eval(), AbsPoseNet().eval()
+
+
 @pytest.mark.parametrize("size", [(128, 96), (256, 192), (640, 480)])
-def test_output_shapes(size: tuple[int, int]) -> None:
+def test_output_shapes(size: tuple[int, int], three_nets: tuple[DepthNet, DSCNet, AbsPoseNet]) -> None:
     W, H = size
     x = torch.rand(1, 3, H, W)
-    depth, dsc, pose = DepthNet().eval(), DSCNet().eval(), AbsPoseNet().eval()
+    depth, dsc, pose = three_nets
     with torch.no_grad():
         disps = depth(x)
         assert [tuple(d.shape) for d in disps] == [(1, 1, H >> s, W >> s) for s in range(4)]
@@ -139,8 +144,8 @@ def _count(m: torch.nn.Module) -> int:
     return sum(p.numel() for p in m.parameters())
 
 
-def test_parameter_counts() -> None:
-    depth, dsc, pose = DepthNet(), DSCNet(), AbsPoseNet()
+def test_parameter_counts(three_nets: tuple[DepthNet, DSCNet, AbsPoseNet]) -> None:
+    depth, dsc, pose = three_nets
     assert _count(depth.encoder) == 11_176_512  # torchvision resnet18 (11,689,512) without fc
     assert _count(depth.decoder) == 3_152_724  # monodepth2's depth decoder
     assert _count(dsc.head) == 1_772_038  # 3x3 512->256, 3x3 256->256 (+BN), 1x1 256->6
