@@ -40,7 +40,7 @@ class Intrinsics:
         return {k: (float(v) if k in ("fx", "fy", "cx", "cy") else int(v)) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Intrinsics":
+    def from_dict(cls, d: dict) -> Intrinsics:
         return cls(
             fx=float(d["fx"]), fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
             width=int(d["width"]), height=int(d["height"]),
@@ -50,7 +50,7 @@ class Intrinsics:
         sx, sy = width / self.width, height / self.height
         return abs(sx - sy) <= ASPECT_TOLERANCE * max(sx, sy)
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """Intrinsics after resizing the whole image to ``width x height`` (any aspect)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(
@@ -59,7 +59,7 @@ class Intrinsics:
             width=int(width), height=int(height),
         )
 
-    def scaled_uniform(self, width: int, height: int) -> "Intrinsics":
+    def scaled_uniform(self, width: int, height: int) -> Intrinsics:
         """Like :meth:`scaled`, but a change of aspect ratio is a user error."""
         if not self.same_aspect(width, height):
             raise UserError(
@@ -68,7 +68,7 @@ class Intrinsics:
             )
         return self.scaled(width, height)
 
-    def cropped(self, x0: float, y0: float, width: int, height: int) -> "Intrinsics":
+    def cropped(self, x0: float, y0: float, width: int, height: int) -> Intrinsics:
         """Intrinsics of the crop whose top-left pixel is (x0, y0) of this image."""
         return Intrinsics(
             fx=self.fx, fy=self.fy, cx=self.cx - x0, cy=self.cy - y0, width=int(width), height=int(height)

@@ -16,7 +16,7 @@ from relocdepth.errors import UserError
 SCHEMA_DIR = Path(__file__).resolve().parent
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_schema(name: str) -> dict:
     """The schema ``name`` (e.g. ``"manifest"``), read from ``<name>.schema.json``."""
     path = SCHEMA_DIR / f"{name}.schema.json"
