@@ -29,6 +29,12 @@ def _schedule(text: str | None) -> tuple[tuple[int, int], ...]:
         raise UserError(f"--window-schedule must look like 0:3,50:10,100:20, not {text!r}") from None
 
 
+def _pixels(text: str) -> str:
+    if text not in ("valid", "all"):
+        raise UserError(f"--photometric-pixels must be valid or all, not {text!r}")
+    return text
+
+
 @app.command()
 @user_errors
 def train(
@@ -56,6 +62,7 @@ def train(
     global_prob: Annotated[float, typer.Option("--global-prob", help="Probability of a global pair then (paper: 0.5).")] = 0.5,
     jitter_per_image: Annotated[bool, typer.Option("--jitter-per-image", help="Independent colour jitter per image (default: one draw per triplet).")] = False,
     scale_max: Annotated[float, typer.Option("--scale-max", help="Scale augmentation upper bound (paper: 1.1; 1 = off).")] = 1.1,
+    photometric_pixels: Annotated[str, typer.Option("--photometric-pixels", help="L_p averages over 'valid' pixels (in the source image; paper) or 'all' (monodepth2, border padding: cannot be gamed by warping off-image).")] = "valid",
     log_every: Annotated[int, typer.Option("--log-every", help="Write logs/train.jsonl every N steps.")] = 10,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Steps between checkpoints.")] = 500,
     keep_last: Annotated[int, typer.Option("--keep-last", help="Checkpoints to keep (older are deleted).")] = 3,
@@ -69,7 +76,7 @@ def train(
         size=_size(size), epochs=epochs, batch_size=batch_size, lr=lr, window=window,
         window_seconds=window_seconds, window_schedule=_schedule(window_schedule), global_epochs=global_epochs,
         global_prob=global_prob, scale_max=scale_max, jitter_per_image=jitter_per_image,
-        lcvs=not no_lcvs, use_dsc=not no_dsc,
+        lcvs=not no_lcvs, photometric_pixels=_pixels(photometric_pixels), use_dsc=not no_dsc,
         pretrained=None if pretrained.lower() == "none" else pretrained, seed=seed, workers=workers,
         device=device, amp=amp, amp_dtype=amp_dtype, channels_last=channels_last, max_steps=max_steps,
         log_every=log_every, checkpoint_every=checkpoint_every, keep_last=keep_last, progress=progress,

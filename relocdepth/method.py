@@ -44,6 +44,14 @@ class MethodConfig:
     w_s: float = 0.001  # smoothness weight
     w_c: float = 0.03  # pose-coordinate weight
     num_scales: int = 4  # decoder scales used in the loss
+    # Pixels L_p averages over: "valid" (in the source image, positive depth; DESIGN.md) or "all"
+    # (monodepth2: border-padded samples count too). "valid" can be gamed by warping off-image
+    # (depth collapses to the minimum, the valid fraction falls; seen at 640x480 on a GPU).
+    photometric_pixels: str = "valid"
+
+    def __post_init__(self) -> None:
+        if self.photometric_pixels not in ("valid", "all"):
+            raise ValueError(f"photometric_pixels must be 'valid' or 'all', not {self.photometric_pixels!r}")
     min_depth: float = 0.1
     max_depth: float = 100.0
 
@@ -166,7 +174,8 @@ def _triplet_loss_fp32(
     for k, (disp, depth) in enumerate(zip(disps, depths)):
         depth_t = flat(depth.reshape(B, 3, 1, H, W)[:, t_idx])
         warped, valid = geo.warp(I_s, depth_t, T_t2s, K_t, K_s)
-        lp = photometric_loss(I_t, warped, valid, cfg.alpha).reshape(B, P).mean(0)  # (P,)
+        counted = valid if cfg.photometric_pixels == "valid" else torch.ones_like(valid)
+        lp = photometric_loss(I_t, warped, counted, cfg.alpha).reshape(B, P).mean(0)  # (P,)
         lp_pairs = lp_pairs + lp / len(disps)
         lp_scales.append(lp.mean())
         h, w = disp.shape[-2:]

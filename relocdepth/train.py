@@ -69,6 +69,7 @@ class TrainConfig:
     alpha: float = 0.85  # paper III-A / monodepth2: SSIM weight
     w_s: float = 0.001  # paper IV-B: smoothness weight
     w_c: float = 0.03  # paper IV-B: pose coordinate weight
+    photometric_pixels: str = "valid"  # L_p over "valid" pixels (DESIGN.md) or "all" (monodepth2)
     seed: int = 0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
@@ -169,7 +170,8 @@ def _method_and_model_configs(cfg: TrainConfig) -> tuple[Any, Any]:
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in values.items() if k in names})
 
-    common = {"lcvs": cfg.lcvs, "use_dsc": cfg.use_dsc, "alpha": cfg.alpha, "w_s": cfg.w_s, "w_c": cfg.w_c}
+    common = {"lcvs": cfg.lcvs, "use_dsc": cfg.use_dsc, "alpha": cfg.alpha, "w_s": cfg.w_s, "w_c": cfg.w_c,
+              "photometric_pixels": cfg.photometric_pixels}
     return build(MethodConfig, common), build(ModelConfig, {"pretrained": cfg.pretrained, "use_dsc": cfg.use_dsc})
 
 

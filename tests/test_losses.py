@@ -231,3 +231,19 @@ def test_predict(nets: torch.nn.Module) -> None:
     assert out["cell_spread_t"].shape == (2,) and out["cell_spread_r_deg"].shape == (2,)
     with pytest.raises(ValueError):
         predict(nets, imgs[:, 0], _K(1))
+
+
+def test_photometric_pixels_option_is_wired() -> None:
+    """"all" averages L_p over every pixel (monodepth2), "valid" over in-image ones (the default)."""
+    torch.manual_seed(0)
+    nets = build_networks(ModelConfig())
+    imgs, Kb = _triplet(3, B=1), _K(1, 3)
+    _, p_valid, d = triplet_loss(nets, imgs, imgs, Kb, MethodConfig())
+    _, p_all, d_all = triplet_loss(nets, imgs, imgs, Kb, MethodConfig(photometric_pixels="all"))
+    assert math.isfinite(float(p_all["L_p"])) and d["valid_frac"] == d_all["valid_frac"]
+    if d["valid_frac"] < 0.999:
+        assert not torch.allclose(p_valid["L_p"], p_all["L_p"])
+    else:
+        assert torch.allclose(p_valid["L_p"], p_all["L_p"], atol=1e-5)
+    with pytest.raises(ValueError, match="photometric_pixels"):
+        MethodConfig(photometric_pixels="some")
