@@ -38,7 +38,7 @@ def _pixels(text: str) -> str:
 @app.command()
 @user_errors
 def train(
-    shards: Annotated[Path, typer.Argument(help="Dataset folder written by `reloc ingest` (trains on its train split).")],
+    shards: Annotated[str, typer.Argument(help="Dataset folder written by `reloc ingest` (trains on its train split), or its URL (http(s)://, file://, s3:// ...: fetched once into ~/.cache/relocdepth).")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Run folder: config.json, logs/, checkpoints/.")] = Path("runs/default"),
     epochs: Annotated[int, typer.Option(help="Epochs; one epoch = every training frame once as a target (paper: 300).")] = 300,
     batch_size: Annotated[int, typer.Option("--batch-size", help="Triplets per step and per process (paper: 6).")] = 6,

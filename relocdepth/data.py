@@ -76,8 +76,9 @@ class ImageFrames:
     @classmethod
     def open(cls, shards: str | os.PathLike, split: str = "train") -> ImageFrames:
         from relocdepth.dataset import open_dataset
+        from relocdepth.remote import local_dataset
 
-        ds = open_dataset(shards)
+        ds = open_dataset(local_dataset(shards))  # a URL is fetched into the local cache first
         frames = [
             TrainFrame(r.key, ds.shard_path(r), r.sequence, r.frame, r.timestamp, r.intrinsics,
                        r.image_ext, r.image_offset, r.image_size)
