@@ -53,9 +53,7 @@ def _copy(url: str, dest: Path) -> tuple[int, str]:
                 h.update(chunk)
                 out.write(chunk)
                 n += len(chunk)
-    except (OSError, ValueError) as e:
-        raise UserError(f"cannot read {url}: {e}") from None
-    except Exception as e:  # gopen's pipes raise plain Exceptions on a failing command
+    except Exception as e:  # noqa: BLE001 - gopen's pipes raise plain Exceptions on a failing command
         raise UserError(f"cannot read {url}: {e}") from None
     return n, h.hexdigest()
 
@@ -105,7 +103,7 @@ class _bar:
     def __init__(self, enabled: bool, total: int, what: str) -> None:
         self.enabled, self.total, self.what = enabled, total, what
 
-    def __enter__(self):  # noqa: ANN204
+    def __enter__(self):
         if not self.enabled:
             return lambda n: None
         from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
