@@ -9,7 +9,7 @@ its own) measures:
 - peak RSS of the process (``resource.getrusage``), and RSS after building the networks.
 
 Usage: ``python benchmarks/bench_core.py [--sizes 128x96,256x192,640x480] [--iters 3]
-[--iters-large 1] [--warmup 1] [--device cpu|cuda]``. Prints one table; numbers go to the README (performance).
+[--iters-large 1] [--warmup 1] [--device cpu|cuda] [--recompute-warps]``. Prints one table; numbers go to the README (performance).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import subprocess
 import sys
 import time
 
+RECOMPUTE = "--recompute-warps" in sys.argv  # MethodConfig.recompute_warps for the loss step
 TRIPLETS = 6  # the paper's batch size (Sec. IV-B)
 LARGE_PIXELS = 640 * 480
 
@@ -56,7 +57,7 @@ def run_one(width: int, height: int, iters: int, warmup: int, device: str) -> di
         nets.zero_grad(set_to_none=True)
 
     def loss_step() -> None:
-        total, _, _ = triplet_loss(nets, images, images, K, MethodConfig())
+        total, _, _ = triplet_loss(nets, images, images, K, MethodConfig(recompute_warps=RECOMPUTE))
         total.backward()
         nets.zero_grad(set_to_none=True)
 
@@ -71,6 +72,7 @@ def run_one(width: int, height: int, iters: int, warmup: int, device: str) -> di
             fn()
         sync()
         out[f"{name}_s"] = (time.perf_counter() - t0) / iters
+        out[f"peak_rss_after_{name}_mb"] = _rss_mb()  # ru_maxrss only grows: nets first, then + losses
     out["peak_rss_mb"] = _rss_mb()
     if dev.type == "cuda":
         out["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
@@ -84,6 +86,7 @@ def main() -> None:
     ap.add_argument("--iters-large", type=int, default=1, help="timed iterations at >= 640x480")
     ap.add_argument("--warmup", type=int, default=1, help="untimed iterations (0 at >= 640x480)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--recompute-warps", action="store_true", help="the loss step with MethodConfig(recompute_warps=True)")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child mode: WxH
     args = ap.parse_args()
     if args.one:
@@ -98,10 +101,17 @@ def main() -> None:
         warmup = 0 if large else args.warmup
         res = subprocess.run(
             [sys.executable, __file__, "--one", size, "--iters", str(iters), "--warmup", str(warmup),
-             "--device", args.device],
-            check=True, capture_output=True, text=True,
+             "--device", args.device] + (["--recompute-warps"] if RECOMPUTE else []),
+            check=False, capture_output=True, text=True,
         )
+        if res.returncode != 0:  # e.g. killed by the kernel's OOM killer at 640x480 on a small machine
+            print(f"{size}: child failed with exit code {res.returncode} (negative: signal; -9 is the "
+                  f"OOM killer): {res.stderr.strip().splitlines()[-1:] }", flush=True)
+            continue
         rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        print(f"{size}: {json.dumps(rows[-1])}", flush=True)
+    if not rows:
+        return
     print(f"batch: {TRIPLETS} triplets = {TRIPLETS * 3} images, device {args.device}, "
           f"torch threads {rows[0]['threads']}")
     print(f"{'size':>9} {'iters':>5} {'nets fwd+bwd s':>15} {'img/s':>7} {'loss step s':>12} "

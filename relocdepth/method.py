@@ -48,6 +48,10 @@ class MethodConfig:
     # (monodepth2: border-padded samples count too). "valid" can be gamed by warping off-image
     # (depth collapses to the minimum, the valid fraction falls; seen at 640x480 on a GPU).
     photometric_pixels: str = "valid"
+    # Recompute each scale's warps and SSIM in the backward pass instead of keeping them
+    # (torch.utils.checkpoint): same gradients, a fraction of the loss's activation memory (the
+    # paper's 640x480 batch of 6 triplets needs more than 21 GB on CPU without it), ~10-20 % more time.
+    recompute_warps: bool = False
 
     def __post_init__(self) -> None:
         if self.photometric_pixels not in ("valid", "all"):
@@ -173,9 +177,13 @@ def _triplet_loss_fp32(
     valid_frac = 0.0
     for k, (disp, depth) in enumerate(zip(disps, depths)):
         depth_t = flat(depth.reshape(B, 3, 1, H, W)[:, t_idx])
-        warped, valid = geo.warp(I_s, depth_t, T_t2s, K_t, K_s)
-        counted = valid if cfg.photometric_pixels == "valid" else torch.ones_like(valid)
-        lp = photometric_loss(I_t, warped, counted, cfg.alpha).reshape(B, P).mean(0)  # (P,)
+        if cfg.recompute_warps and torch.is_grad_enabled():
+            from torch.utils.checkpoint import checkpoint
+
+            lp_img, valid_mean = checkpoint(_warp_loss, I_s, depth_t, T_t2s, K_t, K_s, I_t, cfg, use_reentrant=False)
+        else:
+            lp_img, valid_mean = _warp_loss(I_s, depth_t, T_t2s, K_t, K_s, I_t, cfg)
+        lp = lp_img.reshape(B, P).mean(0)  # (P,)
         lp_pairs = lp_pairs + lp / len(disps)
         lp_scales.append(lp.mean())
         h, w = disp.shape[-2:]
@@ -186,7 +194,7 @@ def _triplet_loss_fp32(
         parts[f"L_p/scale{k}"] = lp_scales[-1]
         parts[f"L_s/scale{k}"] = ls_scales[-1]
         if k == 0:
-            valid_frac = float(valid.mean())
+            valid_frac = float(valid_mean)
     L_p = torch.stack(lp_scales).mean()
     L_s = torch.stack(ls_scales).mean()
     L_c = l_c_img.mean() if l_c_img is not None else images.new_zeros(())
@@ -201,6 +209,15 @@ def _triplet_loss_fp32(
         diag["lp_identity"] = float(photometric_loss(I_t, I_s, ones, cfg.alpha).mean())
         diag["valid_frac"] = valid_frac
     return total, parts, diag
+
+
+def _warp_loss(
+    I_s: Tensor, depth_t: Tensor, T_t2s: Tensor, K_t: Tensor, K_s: Tensor, I_t: Tensor, cfg: MethodConfig
+) -> tuple[Tensor, Tensor]:
+    """Per-image L_p of the target synthesised from the source, and the valid-pixel fraction."""
+    warped, valid = geo.warp(I_s, depth_t, T_t2s, K_t, K_s)
+    counted = valid if cfg.photometric_pixels == "valid" else torch.ones_like(valid)
+    return photometric_loss(I_t, warped, counted, cfg.alpha), valid.mean().detach()
 
 
 def _diagnostics(

@@ -70,6 +70,7 @@ class TrainConfig:
     w_s: float = 0.001  # paper IV-B: smoothness weight
     w_c: float = 0.03  # paper IV-B: pose coordinate weight
     photometric_pixels: str = "valid"  # L_p over "valid" pixels (DESIGN.md) or "all" (monodepth2)
+    recompute_warps: bool = False  # checkpoint the warps/SSIM: less memory, a little more time
     seed: int = 0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
@@ -122,7 +123,8 @@ class TrainConfig:
 
 
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
-RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "max_steps", "log_every",
+RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "recompute_warps", "max_steps",
+                      "log_every",
                       "checkpoint_every", "keep_last", "max_nonfinite", "progress", "resume", "epochs")
 
 
@@ -171,7 +173,7 @@ def _method_and_model_configs(cfg: TrainConfig) -> tuple[Any, Any]:
         return cls(**{k: v for k, v in values.items() if k in names})
 
     common = {"lcvs": cfg.lcvs, "use_dsc": cfg.use_dsc, "alpha": cfg.alpha, "w_s": cfg.w_s, "w_c": cfg.w_c,
-              "photometric_pixels": cfg.photometric_pixels}
+              "photometric_pixels": cfg.photometric_pixels, "recompute_warps": cfg.recompute_warps}
     return build(MethodConfig, common), build(ModelConfig, {"pretrained": cfg.pretrained, "use_dsc": cfg.use_dsc})
 
 

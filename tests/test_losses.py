@@ -247,3 +247,21 @@ def test_photometric_pixels_option_is_wired() -> None:
         assert torch.allclose(p_valid["L_p"], p_all["L_p"], atol=1e-5)
     with pytest.raises(ValueError, match="photometric_pixels"):
         MethodConfig(photometric_pixels="some")
+
+
+def test_recompute_warps_gives_the_same_loss_and_gradients() -> None:
+    """Checkpointing the warps/SSIM trades memory for time; values and gradients must not change."""
+    imgs, K = _triplet(5, B=2), _K(2, 3)
+    grads = []
+    for recompute in (False, True):
+        torch.manual_seed(0)
+        nets = build_networks(ModelConfig())
+        total, _, diag = triplet_loss(nets, imgs, imgs, K, MethodConfig(recompute_warps=recompute))
+        total.backward()
+        grads.append((float(total), diag["valid_frac"],
+                      [p.grad.clone() for p in nets.parameters() if p.grad is not None]))
+    (l0, v0, g0), (l1, v1, g1) = grads
+    assert l0 == pytest.approx(l1, rel=1e-6) and v0 == v1
+    assert len(g0) == len(g1) > 0
+    for a, b in zip(g0, g1):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-7)
