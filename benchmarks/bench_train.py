@@ -6,6 +6,7 @@
 (b) a full train step (batch to device, forward, losses, finite check, backward, Adam step, log)
     vs the bare forward + backward of the networks through ``triplet_loss`` on the same batch;
 (c) peak RSS of a training process at 640x480, batch 6 (a child process, 2 steps).
+At 640x480 the step runs with ``recompute_warps=True`` (without it, > 21 GB: the OOM killer here).
 
     python benchmarks/bench_train.py [--quick]
 """
@@ -91,7 +92,8 @@ def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
     )
 
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = TrainConfig(size=(w, h), pretrained=None, workers=0, progress=False)
+        # 640x480 x 6 triplets needs > 21 GB on CPU unless the warps are recomputed in backward
+        cfg = TrainConfig(size=(w, h), pretrained=None, workers=0, progress=False, recompute_warps=w * h >= 640 * 480)
         tr, state = setup(shards, Path(tmp) / "run", cfg)
         trips = list(tr.sampler.iter_epoch(0))[:6]
         raw = collate([tr.data[t] for t in trips])
@@ -126,7 +128,7 @@ def child_rss(shards: str) -> None:
     from relocdepth.train import TrainConfig, train
 
     with tempfile.TemporaryDirectory() as tmp:
-        train(shards, Path(tmp) / "run", TrainConfig(size=(640, 480), pretrained=None, workers=0,
+        train(shards, Path(tmp) / "run", TrainConfig(size=(640, 480), pretrained=None, workers=0, recompute_warps=True,
                                                      progress=False, max_steps=2, checkpoint_every=100))
     print(json.dumps({"peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
@@ -158,7 +160,7 @@ def main() -> None:
         out = subprocess.run([sys.executable, __file__, "--child-rss", str(sizes[(640, 480)])],
                              capture_output=True, text=True, check=True).stdout
         rss = json.loads(out.strip().splitlines()[-1])["peak_rss_mib"]
-        print(f"\n(c) peak RSS, 640x480, batch 6, 0 workers: {rss:.0f} MiB")
+        print(f"\n(c) peak RSS, 640x480, batch 6, 0 workers, --recompute-warps: {rss:.0f} MiB")
 
 
 if __name__ == "__main__":
