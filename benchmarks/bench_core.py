@@ -9,7 +9,7 @@ its own) measures:
 - peak RSS of the process (``resource.getrusage``), and RSS after building the networks.
 
 Usage: ``python benchmarks/bench_core.py [--sizes 128x96,256x192,640x480] [--iters 3]
-[--iters-large 1] [--warmup 1] [--device cpu|cuda] [--recompute-warps]``. Prints one table; numbers go to the README (performance).
+[--iters-large 1] [--warmup 1] [--device cpu|cuda] [--threads N] [--recompute-warps]``. Prints one table; numbers go to the README (performance).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import subprocess
 import sys
 import time
 
+THREADS = int(sys.argv[sys.argv.index("--threads") + 1]) if "--threads" in sys.argv else 0  # 0: torch's default
 RECOMPUTE = "--recompute-warps" in sys.argv  # MethodConfig.recompute_warps for the loss step
 TRIPLETS = 6  # the paper's batch size (Sec. IV-B)
 LARGE_PIXELS = 640 * 480
@@ -37,6 +38,8 @@ def run_one(width: int, height: int, iters: int, warmup: int, device: str) -> di
     from relocdepth.method import MethodConfig, triplet_loss
     from relocdepth.models import ModelConfig, build_networks
 
+    if THREADS:
+        torch.set_num_threads(THREADS)
     torch.manual_seed(0)
     dev = torch.device(device)
     nets = build_networks(ModelConfig()).to(dev).train()
@@ -86,6 +89,8 @@ def main() -> None:
     ap.add_argument("--iters-large", type=int, default=1, help="timed iterations at >= 640x480")
     ap.add_argument("--warmup", type=int, default=1, help="untimed iterations (0 at >= 640x480)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch threads (0: default); 1 avoids oversubscribing a CPU shared with another job")
     ap.add_argument("--recompute-warps", action="store_true", help="the loss step with MethodConfig(recompute_warps=True)")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child mode: WxH
     args = ap.parse_args()
@@ -101,7 +106,7 @@ def main() -> None:
         warmup = 0 if large else args.warmup
         res = subprocess.run(
             [sys.executable, __file__, "--one", size, "--iters", str(iters), "--warmup", str(warmup),
-             "--device", args.device] + (["--recompute-warps"] if RECOMPUTE else []),
+             "--device", args.device, "--threads", str(THREADS)] + (["--recompute-warps"] if RECOMPUTE else []),
             check=False, capture_output=True, text=True,
         )
         if res.returncode != 0:  # e.g. killed by the kernel's OOM killer at 640x480 on a small machine

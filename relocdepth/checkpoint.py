@@ -251,15 +251,16 @@ def load_for_inference(path_or_run: str | Path | None, device: str = "cpu") -> t
     ``intrinsics`` (training camera at input size), ``alignment`` (Sim(3) dict or None),
     ``config`` (the training config dict), ``manifest_hash``, ``step`` and ``path``.
     """
-    from relocdepth.models import ModelConfig, build_networks
+    from relocdepth.models import ModelConfig, Networks
 
     path = resolve_checkpoint(path_or_run)
     ckpt = load_checkpoint(path, map_location="cpu")
     meta = dict(ckpt["meta"])
     model_cfg = dict(meta["model"])
     model_cfg["pretrained"] = None  # the weights come from the checkpoint
-    nets = build_networks(ModelConfig(**model_cfg))
+    nets = Networks(ModelConfig(**model_cfg))  # not build_networks: no initialisation to log
     nets.load_state_dict(ckpt["model"])
+    log.info("networks loaded from %s (step %s)", path, meta.get("step"))
     nets.to(device).eval()
     meta["input_size"] = tuple(meta["input_size"])
     meta["config"] = meta.get("train", {})
