@@ -8,7 +8,7 @@
 (c) peak RSS of a training process at 640x480, batch 6 (a child process, 2 steps).
 At 640x480 the step runs with ``recompute_warps=True`` (without it, > 21 GB: the OOM killer here).
 
-    python benchmarks/bench_train.py [--quick]
+    python benchmarks/bench_train.py [--quick] [--threads N]
 """
 
 from __future__ import annotations
@@ -137,7 +137,16 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="fewer repetitions")
     ap.add_argument("--child-rss", help=argparse.SUPPRESS)
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch threads (0: default); 1 avoids oversubscribing a CPU shared with another job")
     args = ap.parse_args()
+    if args.threads:
+        import os
+
+        import torch
+
+        os.environ["OMP_NUM_THREADS"] = str(args.threads)  # inherited by the RSS child
+        torch.set_num_threads(args.threads)
     if args.child_rss:
         child_rss(args.child_rss)
         return
