@@ -1,0 +1,286 @@
+"""Quality benchmark (issue 6): does the method learn on the demo scene within a CPU budget?
+
+On the default demo scene (synth seed 0, 3 sequences x 150 frames, 128x96; ingested once) each
+configuration (row) is trained from scratch for a wall-clock budget, then evaluated with the
+paper's protocol (``reloc evaluate``). Writes ``quality.md`` (a markdown table) and
+``quality.json`` (the numbers, the recipes, the rung each row reaches) to ``--out``.
+
+    python benchmarks/quality/run.py [--budget-min 15] [--rows paper,cpu,no-lcvs,no-dsc]
+                                     [--threads 1] [--out /tmp/quality] [--redo]
+
+Every training and evaluation is a child process (``reloc train`` / ``reloc evaluate``) run
+one at a time with ``threads`` torch threads. The trainer counts steps, not seconds, so the
+budget is met with its own stop request: the child is started with no step limit and sent
+SIGTERM at the deadline; it finishes the step in flight and writes a checkpoint. The steps a
+row reaches therefore depend on the machine's speed (and load): the table reports them.
+
+A row whose ``rows/<name>/result.json`` already holds the same recipe and budget is reused
+(``--redo`` retrains it), so the table can be rebuilt, or rows added, without retraining.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+log = logging.getLogger("quality")
+
+# The demo scene (relocdepth.demo.DemoConfig defaults): 2 train + 1 test sequence.
+SCENE = {"seed": 0, "frames": 150, "width": 128, "height": 96, "train_sequences": 2}
+SIZE = f"{SCENE['width']}x{SCENE['height']}"
+
+# Options every row shares. Random init: the development machine is offline (no ImageNet
+# weights), and it keeps the rows comparable. The batch is the paper's (6 triplets).
+COMMON = ["--size", SIZE, "--pretrained", "none", "--batch-size", "6", "--seed", "0", "--workers", "0",
+          "--no-progress", "--log-every", "10", "--checkpoint-every", "1000000", "--keep-last", "1"]
+
+# Row -> `reloc train` options on top of COMMON. `paper`: the paper's recipe at 128x96.
+# `demo`: the demo's recipe (window 3, one colour jitter per triplet, lr 1e-4), the starting
+# point of `cpu`. `cpu`: the best CPU recipe found (README, section quality: trial log).
+PAPER = ["--window", "20", "--jitter-per-image", "--scale-max", "1.1", "--lr", "1e-4"]
+DEMO = ["--window", "3", "--scale-max", "1.1", "--lr", "1e-4"]
+CPU = ["--window", "3", "--scale-max", "1.1", "--lr", "3e-4"]
+RECIPES: dict[str, list[str]] = {
+    "paper": PAPER,
+    "cpu": CPU,
+    "no-lcvs": CPU + ["--no-lcvs"],
+    "no-dsc": CPU + ["--no-dsc"],
+    "demo": DEMO,
+}
+DEFAULT_ROWS = "paper,cpu,no-lcvs,no-dsc"
+
+# "Clearly" below a reference (rungs 1 and 2): at most this fraction of it.
+CLEARLY = 0.9
+# Rung 4: absolute depth quality asked by issue 6.
+RUNG4_ABS_REL = 0.10
+
+# Python run in each child: the thread count is set before any work, then the CLI runs.
+CHILD = ("import sys, torch; torch.set_num_threads(int(sys.argv[1])); torch.set_num_interop_threads(1); "
+         "from relocdepth.cli.main import main; main(sys.argv[2:])")
+
+
+def child_env(threads: int) -> dict[str, str]:
+    env = dict(os.environ)
+    for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        env[k] = str(threads)
+    return env
+
+
+def reloc(args: list[str], threads: int, logfile: Path) -> subprocess.Popen:
+    """Start ``reloc ARGS`` as a child with ``threads`` torch threads, output to ``logfile``."""
+    logfile.parent.mkdir(parents=True, exist_ok=True)
+    with logfile.open("a") as f:
+        return subprocess.Popen([sys.executable, "-c", CHILD, str(threads), *args], stdout=f,
+                                stderr=subprocess.STDOUT, env=child_env(threads))
+
+
+def run_to_end(args: list[str], threads: int, logfile: Path) -> None:
+    rc = reloc(args, threads, logfile).wait()
+    if rc != 0:
+        raise RuntimeError(f"reloc {' '.join(args[:1])} failed (exit {rc}); see {logfile}")
+
+
+def prepare_data(out: Path, threads: int) -> Path:
+    """Render and ingest the demo scene once; returns the shards folder."""
+    from relocdepth.ingest.run import IngestConfig, ingest
+
+    from relocdepth.synth import SynthConfig, generate_scene
+
+    scene, shards = out / "data" / "scene", out / "data" / "shards"
+    if (shards / "manifest.json").is_file():
+        log.info("reusing %s", shards)
+        return shards
+    import torch
+
+    torch.set_num_threads(threads)
+    log.info("rendering the demo scene into %s", scene)
+    generate_scene(scene, SynthConfig(**SCENE))
+    log.info("ingesting into %s", shards)
+    ingest([scene], shards, IngestConfig())
+    return shards
+
+
+def train_for(shards: Path, run: Path, recipe: list[str], budget_s: float, threads: int) -> dict:
+    """Train from scratch until ``budget_s`` seconds after the start, then stop the trainer."""
+    args = ["train", str(shards), "-o", str(run), *COMMON, *recipe]
+    t0 = time.perf_counter()
+    proc = reloc(args, threads, run.parent / "train.log")
+    try:
+        proc.wait(timeout=budget_s)
+        stopped = False
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGTERM)  # finish the step in flight, write a checkpoint
+        stopped = True
+        proc.wait()
+    seconds = time.perf_counter() - t0
+    if not (run / "checkpoints").is_dir() or not any((run / "checkpoints").iterdir()):
+        raise RuntimeError(f"training wrote no checkpoint (exit {proc.returncode}); see {run.parent / 'train.log'}")
+    steps, losses = 0, []
+    for line in (run / "logs" / "train.jsonl").read_text().splitlines():
+        rec = json.loads(line)
+        if rec.get("kind") == "step":
+            steps = max(steps, rec["step"])
+            losses.append((rec["step"], rec["loss"]))
+        elif rec.get("kind") == "event" and rec.get("event") == "stop":
+            steps = max(steps, rec["step"])
+    tail = [v for s, v in losses if s > 0.9 * steps] or [v for _, v in losses[-3:]]
+    return {"seconds": round(seconds, 1), "stopped_at_deadline": stopped, "steps": steps,
+            "final_loss": round(sum(tail) / len(tail), 4) if tail else None,
+            "loss_curve": losses[:: max(len(losses) // 20, 1)]}
+
+
+def evaluate(shards: Path, run: Path, report: Path, threads: int) -> dict:
+    t0 = time.perf_counter()
+    run_to_end(["evaluate", str(shards), "--checkpoint", str(run), "-o", str(report)], threads,
+               report.parent / "evaluate.log")
+    log.info("evaluated in %.0f s", time.perf_counter() - t0)
+    return json.loads(report.read_text())
+
+
+def metrics(report: dict) -> dict:
+    """The table's columns from a ``reloc evaluate`` report."""
+    test, rel = report["pose"]["test"], report["pose"]["relative"]
+    depth = (report.get("depth") or {}).get("prediction") or {}
+    return {
+        "median_t_m": test["median_t_m"], "median_r_deg": test["median_r_deg"],
+        "pct_10cm_10deg": test["pct_10cm_10deg"],
+        "rel_k": rel["k"], "rel_t_m": rel["median_t_m"], "rel_r_deg": rel["median_r_deg"],
+        "abs_rel": depth.get("abs_rel"), "delta1": depth.get("delta1"),
+        "scale_std_over_median": depth.get("scale_std_over_median"),
+    }
+
+
+def references(report: dict) -> dict:
+    """Mean-pose, retrieval, identity relative pose and constant-depth rows (same split)."""
+    base, rel = report["baselines"], report["pose"]["relative"]
+    const = (report.get("depth") or {}).get("constant_reference") or {}
+    return {
+        "mean_pose": {k: base["mean_pose"][k] for k in ("median_t_m", "median_r_deg", "pct_10cm_10deg")},
+        "retrieval": {k: base["retrieval"][k] for k in ("median_t_m", "median_r_deg", "pct_10cm_10deg")},
+        "identity_relative": {"rel_k": rel["k"], "rel_t_m": rel["identity_median_t_m"],
+                              "rel_r_deg": rel["identity_median_r_deg"]},
+        "constant_depth": {k: const.get(k) for k in ("abs_rel", "delta1", "scale_std_over_median")},
+    }
+
+
+def rung(m: dict, ref: dict) -> tuple[int, list[str]]:
+    """The highest rung of issue 6 reached (0: none), each rung needing the ones below it,
+    and why the next one is not reached."""
+    ident, const = ref["identity_relative"], ref["constant_depth"]
+    mean, retr = ref["mean_pose"], ref["retrieval"]
+    checks = [
+        [("AbsRel", m["abs_rel"], CLEARLY * const["abs_rel"]),
+         ("relative t", m["rel_t_m"], CLEARLY * ident["rel_t_m"]),
+         ("relative r", m["rel_r_deg"], CLEARLY * ident["rel_r_deg"])],
+        [("median t", m["median_t_m"], CLEARLY * mean["median_t_m"])],
+        [("median t", m["median_t_m"], retr["median_t_m"])],
+        [("median r", m["median_r_deg"], retr["median_r_deg"]), ("AbsRel", m["abs_rel"], RUNG4_ABS_REL)],
+    ]
+    reached = 0
+    for level in checks:
+        failed = [f"{name} {v:.3g} > {bar:.3g}" for name, v, bar in level if v is None or not v < bar]
+        if failed:
+            return reached, failed
+        reached += 1
+    return reached, []
+
+
+def fmt(v: float | None, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def table(rows: dict, ref: dict) -> str:
+    head = ("| row | input | budget | steps | median t (m) | median r (deg) | 10cm/10deg | "
+            "rel. pose, frames 5 apart (m / deg) | AbsRel | d<1.25 | scale std/median | rung |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for name, r in rows.items():
+        m = r["metrics"]
+        lines.append(
+            f"| {name} | {SIZE} | {r['budget_min']:g} min | {r['train']['steps']} | {m['median_t_m']:.3f} | "
+            f"{m['median_r_deg']:.1f} | {m['pct_10cm_10deg']:.1f} % | {m['rel_t_m']:.4f} / {m['rel_r_deg']:.2f} | "
+            f"{fmt(m['abs_rel'], '.3f')} | {fmt(m['delta1'], '.3f')} | {fmt(m['scale_std_over_median'], '.3f')} | "
+            f"{r['rung']} |")
+    mp, rt, idr, cd = ref["mean_pose"], ref["retrieval"], ref["identity_relative"], ref["constant_depth"]
+    refs = [
+        ("*mean pose*", {4: f"{mp['median_t_m']:.3f}", 5: f"{mp['median_r_deg']:.1f}",
+                         6: f"{mp['pct_10cm_10deg']:.1f} %"}),
+        ("*thumbnail retrieval*", {4: f"{rt['median_t_m']:.3f}", 5: f"{rt['median_r_deg']:.1f}",
+                                   6: f"{rt['pct_10cm_10deg']:.1f} %"}),
+        ("*identity (relative)*", {7: f"{idr['rel_t_m']:.4f} / {idr['rel_r_deg']:.2f}"}),
+        ("*constant depth*", {8: fmt(cd["abs_rel"], ".3f"), 9: fmt(cd["delta1"], ".3f"),
+                              10: fmt(cd["scale_std_over_median"], ".3f")}),
+    ]
+    for name, cells in refs:
+        lines.append("| " + " | ".join([name] + [cells.get(i, "") for i in range(1, 12)]) + " |")
+    return "\n".join(lines)
+
+
+def run_row(name: str, shards: Path, out: Path, budget_min: float, threads: int, redo: bool) -> dict:
+    recipe = RECIPES[name]
+    folder = out / "rows" / name
+    done = folder / "result.json"
+    if done.is_file() and not redo:
+        prev = json.loads(done.read_text())
+        if prev.get("recipe") == COMMON + recipe and prev.get("budget_min") == budget_min:
+            log.info("%s: reusing %s", name, done)
+            return prev
+    if folder.exists():
+        import shutil
+
+        shutil.rmtree(folder)
+    log.info("%s: training %.1f min: reloc train %s", name, budget_min, " ".join(COMMON + recipe))
+    summary = train_for(shards, folder / "run", recipe, 60.0 * budget_min, threads)
+    log.info("%s: %d steps in %.0f s, loss %.4f", name, summary["steps"], summary["seconds"],
+             summary["final_loss"] or float("nan"))
+    report = evaluate(shards, folder / "run", folder / "eval" / "report.json", threads)
+    result = {"row": name, "recipe": COMMON + recipe, "budget_min": budget_min, "threads": threads,
+              "train": summary, "metrics": metrics(report), "references": references(report)}
+    done.write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--budget-min", type=float, default=15.0, help="training wall clock per row (minutes)")
+    ap.add_argument("--rows", default=DEFAULT_ROWS, help=f"comma-separated, of {', '.join(RECIPES)}")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads of each child process")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/quality"), help="output folder")
+    ap.add_argument("--redo", action="store_true", help="retrain rows even when a result exists")
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    names = [r.strip() for r in a.rows.split(",") if r.strip()]
+    unknown = [r for r in names if r not in RECIPES]
+    if unknown or not names or a.budget_min <= 0 or a.threads < 1:
+        ap.error(f"rows must be among {', '.join(RECIPES)} (got {unknown or names}); budget and threads > 0")
+    a.out.mkdir(parents=True, exist_ok=True)
+    shards = prepare_data(a.out, a.threads)
+    rows = {}
+    for name in names:
+        rows[name] = run_row(name, shards, a.out, a.budget_min, a.threads, a.redo)
+    ref = rows[names[0]]["references"]
+    for r in rows.values():
+        r["rung"], r["next_rung_blocked_by"] = rung(r["metrics"], ref)
+    md = table(rows, ref)
+    cmd = "python benchmarks/quality/run.py " + " ".join(sys.argv[1:])
+    (a.out / "quality.md").write_text(
+        f"`{cmd.strip()}` (demo scene: synth seed 0, 150 frames x 3 sequences at {SIZE}; "
+        f"{a.threads} torch thread(s); random init)\n\n{md}\n")
+    (a.out / "quality.json").write_text(json.dumps(
+        {"scene": SCENE, "budget_min": a.budget_min, "threads": a.threads, "clearly": CLEARLY,
+         "references": ref, "rows": rows}, indent=2) + "\n")
+    print(md)
+    for name, r in rows.items():
+        why = "; ".join(r["next_rung_blocked_by"])
+        print(f"{name}: rung {r['rung']}" + (f" (next blocked by: {why})" if why else ""))
+    print(f"\nwritten: {a.out / 'quality.md'}, {a.out / 'quality.json'}")
+
+
+if __name__ == "__main__":
+    main()
