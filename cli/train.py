@@ -30,8 +30,10 @@ def _schedule(text: str | None) -> tuple[tuple[int, int], ...]:
 
 
 def _pixels(text: str) -> str:
-    if text not in ("valid", "all"):
-        raise UserError(f"--photometric-pixels must be valid or all, not {text!r}")
+    from relocdepth.method import PHOTOMETRIC_PIXELS
+
+    if text not in PHOTOMETRIC_PIXELS:
+        raise UserError(f"--photometric-pixels must be one of {', '.join(PHOTOMETRIC_PIXELS)}, not {text!r}")
     return text
 
 

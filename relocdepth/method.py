@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 
 from relocdepth import geometry as geo
 from relocdepth.losses import (
@@ -27,11 +28,13 @@ from relocdepth.models import Networks, disp_to_depth
 CONF_ROT_DEG = 5.0
 CONF_TRANS_REL = 0.05
 
-__all__ = ["PAIRS_LCVS", "PAIRS_MIDDLE", "MethodConfig", "pairs_for", "predict", "triplet_loss"]
+__all__ = ["PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "MethodConfig", "pairs_for", "predict", "triplet_loss"]
 
 # (target, source) frame indices of a triplet; the middle frame is index 1.
 PAIRS_LCVS: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
 PAIRS_MIDDLE: tuple[tuple[int, int], ...] = ((1, 0), (1, 2))
+# The pixel sets L_p can average over (MethodConfig.photometric_pixels).
+PHOTOMETRIC_PIXELS = ("valid", "all")
 
 
 @dataclass(frozen=True)
@@ -52,12 +55,12 @@ class MethodConfig:
     # (torch.utils.checkpoint): same gradients, a fraction of the loss's activation memory (the
     # paper's 640x480 batch of 6 triplets needs more than 21 GB on CPU without it), ~10-20 % more time.
     recompute_warps: bool = False
-
-    def __post_init__(self) -> None:
-        if self.photometric_pixels not in ("valid", "all"):
-            raise ValueError(f"photometric_pixels must be 'valid' or 'all', not {self.photometric_pixels!r}")
     min_depth: float = 0.1
     max_depth: float = 100.0
+
+    def __post_init__(self) -> None:
+        if self.photometric_pixels not in PHOTOMETRIC_PIXELS:
+            raise ValueError(f"photometric_pixels must be one of {PHOTOMETRIC_PIXELS}, not {self.photometric_pixels!r}")
 
 
 def pairs_for(cfg: MethodConfig) -> tuple[tuple[int, int], ...]:
@@ -178,8 +181,6 @@ def _triplet_loss_fp32(
     for k, (disp, depth) in enumerate(zip(disps, depths)):
         depth_t = flat(depth.reshape(B, 3, 1, H, W)[:, t_idx])
         if cfg.recompute_warps and torch.is_grad_enabled():
-            from torch.utils.checkpoint import checkpoint
-
             lp_img, valid_mean = checkpoint(_warp_loss, I_s, depth_t, T_t2s, K_t, K_s, I_t, cfg, use_reentrant=False)
         else:
             lp_img, valid_mean = _warp_loss(I_s, depth_t, T_t2s, K_t, K_s, I_t, cfg)

@@ -20,6 +20,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
+
 from relocdepth.errors import UserError
 
 log = logging.getLogger(__name__)
@@ -58,6 +60,10 @@ def _copy(url: str, dest: Path) -> tuple[int, str]:
     return n, h.hexdigest()
 
 
+def _same_manifest(a: Path, b: Path) -> bool:
+    return (a / MANIFEST).is_file() and (a / MANIFEST).read_bytes() == (b / MANIFEST).read_bytes()
+
+
 def fetch_dataset(url: str, root: Path | None = None, progress: bool = True) -> Path:
     """A local copy of the shard dataset at ``url`` (see the module doc); returns its folder."""
     root = Path(root) if root is not None else cache_root()
@@ -71,51 +77,31 @@ def fetch_dataset(url: str, root: Path | None = None, progress: bool = True) -> 
             shards = [(s["name"], int(s["bytes"]), s["sha256"]) for s in manifest["shards"]]
         except (ValueError, KeyError, TypeError) as e:
             raise UserError(f"{_join(url, MANIFEST)} is not a shard manifest ({e})") from None
-        if (dest / MANIFEST).is_file() and (dest / MANIFEST).read_bytes() == (tmp / MANIFEST).read_bytes():
+        if _same_manifest(dest, tmp):
             log.info("using the cached copy of %s in %s", url, dest)
             return dest
         _copy(_join(url, INDEX), tmp / INDEX)
         total = sum(b for _, b, _ in shards)
-        with _bar(progress, total, url) as advance:
+        columns = ("fetch", BarColumn(), DownloadColumn(), TransferSpeedColumn())
+        with Progress(*columns, transient=True, disable=not progress) as bar:
+            task = bar.add_task(url, total=total)
             for name, size, sha in shards:
                 n, got = _copy(_join(url, name), tmp / name)
                 if n != size or got != sha:
                     raise UserError(f"{_join(url, name)}: {n} bytes, sha256 {got[:12]}..., but the "
                                     f"manifest says {size} bytes, {sha[:12]}...; the remote dataset is damaged")
-                advance(n)
+                bar.advance(task, n)
         if dest.exists():
             shutil.rmtree(dest, ignore_errors=True)
         try:
             os.replace(tmp, dest)
         except OSError:  # another process (a DDP rank) finished the same fetch first
-            if not (dest / MANIFEST).is_file() or (dest / MANIFEST).read_bytes() != (tmp / MANIFEST).read_bytes():
+            if not _same_manifest(dest, tmp):
                 raise
-
         log.info("fetched %s (%d shards, %.1f MB) to %s", url, len(shards), total / 1e6, dest)
         return dest
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-
-
-class _bar:
-    """A rich progress bar over bytes, or nothing."""
-
-    def __init__(self, enabled: bool, total: int, what: str) -> None:
-        self.enabled, self.total, self.what = enabled, total, what
-
-    def __enter__(self):
-        if not self.enabled:
-            return lambda n: None
-        from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
-
-        self.progress = Progress("fetch", BarColumn(), DownloadColumn(), TransferSpeedColumn(), transient=True)
-        self.progress.start()
-        task = self.progress.add_task(self.what, total=self.total)
-        return lambda n: self.progress.advance(task, n)
-
-    def __exit__(self, *exc: object) -> None:
-        if self.enabled:
-            self.progress.stop()
 
 
 def local_dataset(location: str | os.PathLike, progress: bool = True) -> str | os.PathLike:

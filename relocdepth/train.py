@@ -124,8 +124,7 @@ class TrainConfig:
 
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
 RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "recompute_warps", "max_steps",
-                      "log_every",
-                      "checkpoint_every", "keep_last", "max_nonfinite", "progress", "resume", "epochs")
+                      "log_every", "checkpoint_every", "keep_last", "max_nonfinite", "progress", "resume", "epochs")
 
 
 @dataclass
