@@ -16,6 +16,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -56,7 +57,9 @@ def _copy(url: str, dest: Path) -> tuple[int, str]:
                 out.write(chunk)
                 n += len(chunk)
     except Exception as e:  # noqa: BLE001 - gopen's pipes raise plain Exceptions on a failing command
-        raise UserError(f"cannot read {url}: {e}") from None
+        status = re.search(r"exit (\d+)", str(e))  # gopen's message holds the whole command line
+        why = f"the download command exited with status {status.group(1)}" if status else str(e)
+        raise UserError(f"cannot read {url}: {why}") from None
     return n, h.hexdigest()
 
 
