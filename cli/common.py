@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import re
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -28,3 +29,11 @@ def user_errors(fn: F) -> F:
             raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
+    """``"640x480"`` -> (640, 480); anything else is a UserError naming ``option``."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
+        raise UserError(f"{option} must look like 640x480 (WIDTHxHEIGHT, positive), got {text!r}")
+    return int(m.group(1)), int(m.group(2))

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from relocdepth.cli.common import user_errors
+from relocdepth.cli.common import parse_size, user_errors
 from relocdepth.cli.main import app
 
 SOURCES_HELP = (
@@ -40,11 +40,11 @@ def ingest(
     strict: Annotated[bool, typer.Option("--strict", help="Fail on a corrupt frame instead of skipping it (skipped frames are listed in the manifest and counted in a warning).")] = False,
 ) -> None:
     """Convert sources into a shard dataset (WebDataset tars + index.parquet + manifest.json)."""
-    from relocdepth.ingest.run import IngestConfig, parse_size
+    from relocdepth.ingest.run import IngestConfig
     from relocdepth.ingest.run import ingest as run_ingest
 
     cfg = IngestConfig(
-        intrinsics=K, stride=stride, resize=parse_size(resize) if resize else None, split=split,
+        intrinsics=K, stride=stride, resize=parse_size(resize, "--resize") if resize else None, split=split,
         name=name, scene=scene, shard_size=shard_size, force=force, strict=strict,
         video_format=video_format,
     )

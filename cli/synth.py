@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from relocdepth.cli.common import user_errors
+from relocdepth.cli.common import parse_size, user_errors
 from relocdepth.cli.main import app
 
 
@@ -32,7 +32,7 @@ def synth(
         TimeRemainingColumn,
     )
 
-    from relocdepth.synth import SynthConfig, generate_scene, parse_size
+    from relocdepth.synth import SynthConfig, generate_scene
 
     width, height = parse_size(size)
     cfg = SynthConfig(seed=seed, frames=frames, width=width, height=height,

@@ -6,18 +6,10 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from relocdepth.cli.common import user_errors
+from relocdepth.cli.common import parse_size, user_errors
 from relocdepth.cli.main import app
 
 from relocdepth.errors import UserError
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UserError(f"--size must look like 640x480, not {text!r}") from None
-    return w, h
 
 
 def _schedule(text: str | None) -> tuple[tuple[int, int], ...]:
@@ -76,7 +68,7 @@ def train(
     from relocdepth.train import train as run_training
 
     cfg = TrainConfig(
-        size=_size(size), epochs=epochs, batch_size=batch_size, lr=lr, window=window,
+        size=parse_size(size), epochs=epochs, batch_size=batch_size, lr=lr, window=window,
         window_seconds=window_seconds, window_schedule=_schedule(window_schedule), global_epochs=global_epochs,
         global_prob=global_prob, scale_max=scale_max, jitter_per_image=jitter_per_image,
         lcvs=not no_lcvs, photometric_pixels=_pixels(photometric_pixels),

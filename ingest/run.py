@@ -78,17 +78,6 @@ class IngestConfig:
             raise UserError(f"workers must be >= 1, got {self.workers}")
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """``"640x480"`` -> (640, 480); a UserError otherwise."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UserError(f"expected a size like 640x480, got '{text}'") from None
-    if w < 1 or h < 1:
-        raise UserError(f"expected a positive size like 640x480, got '{text}'")
-    return w, h
-
-
 def detect_kind(path: Path) -> str:
     """``"sevenscenes"``, ``"video"`` or ``"images"``; a UserError for anything else."""
     check_readable(path)

@@ -21,7 +21,6 @@ import functools
 import json
 import logging
 import os
-import re
 import shutil
 import time
 from collections.abc import Callable
@@ -696,14 +695,6 @@ def camera_paths(cfg: SynthConfig) -> dict[str, np.ndarray]:
 
 # ----------------------------------------------------------------------------------------------
 # Output
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """``"640x480"`` -> (640, 480); anything else is a UserError."""
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not m:
-        raise UserError(f"--size must look like 640x480 (WIDTHxHEIGHT), got {text!r}")
-    return int(m.group(1)), int(m.group(2))
 
 
 def _check_config(cfg: SynthConfig) -> None:
