@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
 from relocdepth.errors import UserError
+from relocdepth.fileio import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -50,32 +49,9 @@ def checkpoint_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / CHECKPOINT_DIR
 
 
-def _atomic_write_bytes(path: Path, write) -> None:
-    """Write through ``write(fileobj)`` to a temp file beside ``path``, fsync, rename into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    try:  # make the rename itself durable
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
-
-
 def atomic_write_json(path: Path, obj: Any) -> None:
     data = (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode()
-    _atomic_write_bytes(Path(path), lambda f: f.write(data))
+    atomic_write(Path(path), lambda f: f.write(data))
 
 
 def list_checkpoints(run_or_dir: str | Path) -> list[Path]:
@@ -105,7 +81,7 @@ def save_checkpoint(run_dir: str | Path, state: dict[str, Any], keep_last: int =
     path = d / checkpoint_name(int(meta["step"]))
     for stale in d.glob(".ckpt-*.tmp") if d.is_dir() else ():  # left by a killed writer (one writer per run)
         stale.unlink(missing_ok=True)
-    _atomic_write_bytes(path, lambda f: torch.save(state, f))
+    atomic_write(path, lambda f: torch.save(state, f))
     pointer = {
         "format": POINTER_FORMAT, "format_version": FORMAT_VERSION,
         "checkpoint": path.name, "step": int(meta["step"]), "epoch": int(meta["epoch"]),

@@ -188,9 +188,9 @@ def evaluate(
     """
     from relocdepth.checkpoint import save_alignment as store_alignment
     from relocdepth.dataset import open_dataset
+    from relocdepth.fileio import write_text_atomic
     from relocdepth.predictor import Predictor
     from relocdepth.schemas import validate
-    from relocdepth.trajectory import write_text_atomic
 
     ds = open_dataset(shards)
     train_recs, test_recs = _checked_records(ds)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -22,6 +21,7 @@ import numpy as np
 
 from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
+from relocdepth.ingest.source import natural_key
 from relocdepth.predictor import Prediction, Predictor
 from relocdepth.trajectory import apply_sim3_dict, rotmat_to_quat, sim3_from_dict, tum_lines
 
@@ -55,17 +55,13 @@ class Frame:
     image: np.ndarray  # RGB uint8 (H, W, 3)
 
 
-def _natural_key(s: str) -> list:
-    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", s)]
-
-
 def list_folder(folder: Path) -> list[Path]:
     """Images of a folder in natural order; only the colour frames of a 7-Scenes folder."""
     files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS]
     colour = [p for p in files if p.name.endswith(SEVENSCENES_COLOR)]
     if colour:
         files = colour
-    return sorted(files, key=lambda p: _natural_key(p.name))
+    return sorted(files, key=lambda p: natural_key(p.name))
 
 
 def expand_inputs(inputs: list[str | Path]) -> list[tuple[str, Path]]:
@@ -263,7 +259,7 @@ def localize(inputs: list[str | Path], cfg: LocalizeConfig) -> tuple[list[dict],
     Returns (records, text in cfg.format); when ``cfg.output`` is set the text is also written
     there (atomically). Every input is checked before anything is written.
     """
-    from relocdepth.trajectory import write_text_atomic
+    from relocdepth.fileio import write_text_atomic
 
     if cfg.format not in FORMATS:
         raise UserError(f"unknown --format {cfg.format!r}; use one of {', '.join(FORMATS)}")

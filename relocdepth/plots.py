@@ -28,7 +28,7 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
     """Encode and write a PNG via a temp file + rename (no half-written images)."""
     import cv2
 
-    from relocdepth.trajectory import write_bytes_atomic
+    from relocdepth.fileio import write_bytes_atomic
 
     ok, buf = cv2.imencode(".png", image)
     if not ok:

@@ -7,14 +7,13 @@ Hamilton, scalar last.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from relocdepth.errors import UserError
+from relocdepth.fileio import write_text_atomic
 from relocdepth.metrics import apply_sim3, project_to_so3
 
 
@@ -70,25 +69,6 @@ def tum_lines(timestamps: Sequence[float], T_wc: np.ndarray) -> list[str]:
         f"{float(ts):.6f} " + " ".join(f"{v:.9g}" for v in (*T[:3, 3], *qq))
         for ts, T, qq in zip(timestamps, T_wc, q)
     ]
-
-
-def write_bytes_atomic(path: str | Path, data: bytes) -> None:
-    """Write a file via a temp file + rename, so no half-written file is ever in place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def write_text_atomic(path: str | Path, text: str) -> None:
-    """Write a text file atomically (see :func:`write_bytes_atomic`)."""
-    write_bytes_atomic(path, text.encode())
 
 
 def write_tum(path: str | Path, timestamps: Sequence[float], T_wc: np.ndarray) -> None:
