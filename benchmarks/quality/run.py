@@ -5,7 +5,7 @@ configuration (row) is trained from scratch for a wall-clock budget, then evalua
 paper's protocol (``reloc evaluate``). Writes ``quality.md`` (a markdown table) and
 ``quality.json`` (the numbers, the recipes, the rung each row reaches) to ``--out``.
 
-    python benchmarks/quality/run.py [--budget-min 15] [--rows paper,cpu,no-lcvs,no-dsc]
+    python benchmarks/quality/run.py [--budget-min 15] [--rows paper,cpu,no-lcvs,no-dsc,...]
                                      [--threads 1] [--out /tmp/quality] [--redo]
 
 Every training and evaluation is a child process (``reloc train`` / ``reloc evaluate``) run
@@ -47,9 +47,15 @@ COMMON = ["--size", SIZE, "--pretrained", "none", "--batch-size", "6", "--seed",
 PAPER = ["--window", "20", "--jitter-per-image", "--scale-max", "1.1", "--lr", "1e-4"]
 DEMO = ["--window", "3", "--scale-max", "1.1", "--lr", "1e-4"]
 CPU = ["--window", "3", "--scale-max", "1.1", "--lr", "3e-4"]
+# `cpu-all`: `cpu` with L_p over all pixels (trial 2). `cpu-schedule`: `cpu-all` with the window
+# growing 3 -> 10 -> 20 frames (trial 4: a +-3 window leaves ~1 px of parallax at 128x96).
+CPU_ALL = CPU + ["--photometric-pixels", "all"]
+CPU_SCHEDULE = CPU_ALL + ["--window-schedule", "0:3,8:10,16:20"]
 RECIPES: dict[str, list[str]] = {
     "paper": PAPER,
     "cpu": CPU,
+    "cpu-all": CPU_ALL,
+    "cpu-schedule": CPU_SCHEDULE,
     "no-lcvs": CPU + ["--no-lcvs"],
     "no-dsc": CPU + ["--no-dsc"],
     "demo": DEMO,
