@@ -20,13 +20,16 @@ def evaluate(
     save_alignment: Annotated[bool, typer.Option("--save-alignment", help="Store the fitted Sim(3) with the run: localize then reports metric poses in the ground-truth frame.")] = False,
     batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 16,
     device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N.")] = "cpu",
+    test_sequences: Annotated[str | None, typer.Option("--test-sequences", metavar="NAMES", help="Comma-separated sequences to test on instead of the test split (the others fit the Sim(3)); e.g. a training sequence, to see whether the networks fit the frames they trained on.")] = None,
 ) -> None:
     """Sim(3)-aligned pose errors, depth metrics and baselines (JSON report, TUM files, plots)."""
     from relocdepth.evaluate import EvalConfig
     from relocdepth.evaluate import evaluate as run_evaluate
     from relocdepth.report import format_table
 
-    report = run_evaluate(shards, checkpoint, EvalConfig(batch_size=batch_size, device=device),
+    report = run_evaluate(shards, checkpoint, EvalConfig(
+        batch_size=batch_size, device=device,
+        test_sequences=tuple(n.strip() for n in (test_sequences or "").split(",") if n.strip())),
                           report_path=out, plots_dir=plots, save_alignment=save_alignment)
     typer.echo(format_table(report))
     if save_alignment:

@@ -39,6 +39,9 @@ class EvalConfig:
     relative_k: int = 5  # relative pose between frames this far apart (issue 6's table)
     strip_frames: int = 6  # rows of the image | depth | GT plot
     device: str = "cpu"
+    # Sequences to test on instead of the shards' test split (the rest fit the Sim(3)): e.g. a
+    # training sequence, to tell "not learned" from "learned but does not generalise".
+    test_sequences: tuple[str, ...] = ()
 
 
 @dataclass
@@ -114,15 +117,24 @@ def baselines_report(
 # ----------------------------------------------------------------------------- gathering
 
 
-def _checked_records(ds) -> tuple[list, list]:
+def _checked_records(ds, test_sequences: tuple[str, ...] = ()) -> tuple[list, list]:
     posed = [r for r in ds.records if r.has_pose]
     if not posed:
         raise UserError(
             f"{ds.root} has no ground-truth poses; evaluate needs shards ingested from a source "
             "with poses (e.g. a 7-Scenes folder or `reloc synth`)"
         )
-    train = [r for r in posed if r.split == "train"]
-    test = [r for r in posed if r.split == "test"]
+    if test_sequences:
+        known = list(dict.fromkeys(r.sequence for r in posed))
+        unknown = [name for name in test_sequences if name not in known]
+        if unknown:
+            raise UserError(f"no sequence {', '.join(unknown)} with poses in {ds.root} "
+                            f"(it has {', '.join(known)})")
+        test = [r for r in posed if r.sequence in test_sequences]
+        train = [r for r in posed if r.sequence not in test_sequences]
+    else:
+        train = [r for r in posed if r.split == "train"]
+        test = [r for r in posed if r.split == "test"]
     if len(train) < MIN_FIT_FRAMES:
         raise UserError(f"{ds.root} has {len(train)} training frames with poses; the Sim(3) fit "
                         f"needs at least {MIN_FIT_FRAMES}")
@@ -193,7 +205,7 @@ def evaluate(
     from relocdepth.schemas import validate
 
     ds = open_dataset(shards)
-    train_recs, test_recs = _checked_records(ds)
+    train_recs, test_recs = _checked_records(ds, tuple(cfg.test_sequences))
     predictor = Predictor.from_checkpoint(checkpoint, device=cfg.device)
     ckpt_path = Path(predictor.meta["path"])
     report_path = Path(report_path) if report_path else ckpt_path.parent.parent / "eval" / "report.json"

@@ -169,3 +169,24 @@ def test_evaluate_bad_inputs(run: Path, synth_scene: Path, synth_shards: Path, t
         assert res.exit_code == 2, res.output
         last = res.output.strip().splitlines()[-1]
         assert last.startswith("error: ") and word in last, res.output
+
+
+def test_evaluate_on_chosen_sequences(run: Path, synth_shards: Path, tmp_path: Path) -> None:
+    report_path = tmp_path / "train_seq" / "report.json"
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(report_path),
+                 "--test-sequences", "seq-01")
+    assert res.exit_code == 0, res.output
+    report = json.loads(report_path.read_text())
+    validate("report", report)
+    assert report["dataset"]["test_sequences"] == ["seq-01"]
+    assert report["dataset"]["test_frames"] == SCENE_FRAMES
+    assert report["dataset"]["train_frames"] == 2 * SCENE_FRAMES  # seq-02 and seq-03 fit the Sim(3)
+    ds = open_dataset(synth_shards)
+    seq1 = [r for r in ds.records if r.sequence == "seq-01"]
+    _, T_gt = read_tum(report["outputs"]["tum"]["seq-01"]["groundtruth"])
+    np.testing.assert_allclose(T_gt, np.stack([ds.read_pose(r) for r in seq1]), atol=1e-6)
+
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "--test-sequences", "seq-09")
+    assert res.exit_code == 2, res.output
+    last = res.output.strip().splitlines()[-1]
+    assert last.startswith("error: ") and "seq-09" in last and "seq-01" in last, res.output
