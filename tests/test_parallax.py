@@ -43,3 +43,19 @@ def test_sideways_translation_matches_fx_t_inverse_depth_difference():
     expected = 105.0 * 0.02 * np.abs(1.0 / d - 1.0 / np.median(d))
     np.testing.assert_allclose(dflow, expected, atol=1e-9)
     np.testing.assert_allclose(flow, 105.0 * 0.02 / d, atol=1e-9)
+
+
+def test_walkthrough_folder_is_read_as_one_sequence(tmp_path: Path):
+    import cv2
+
+    (tmp_path / "depth").mkdir()
+    T = np.stack([np.eye(4)] * 3)
+    T[:, 0, 3] = [0.0, 0.01, 0.02]
+    np.savetxt(tmp_path / "poses.txt", T.reshape(3, 16))
+    np.savetxt(tmp_path / "K.txt", K)
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / "depth" / f"{i:05d}.png"), np.full((96, 128), 1500 + i, np.uint16))
+    [(K2, T2, D2)] = parallax.sequences(tmp_path)
+    np.testing.assert_allclose(K2, K)
+    np.testing.assert_allclose(T2, T)
+    assert D2.shape == (3, 96, 128) and D2[2, 0, 0] == 1.502

@@ -1,12 +1,15 @@
 """How many pixels of warp does depth explain, for frames k apart? (issue 6, trial 4)
 
 Photometric losses learn depth only from the part of the warp that depth changes. For target
-frames t and sources s = t + k of a 7-Scenes-layout scene with ground-truth depth and poses, this
+frames t and sources s = t + k of a scene with ground-truth depth and poses (7-Scenes layout:
+seq-XX/ + intrinsics.yaml; or one walk-through as images/, depth/ (uint16 mm), poses.txt (a
+row-major 4x4 camera-to-world matrix per line) and K.txt, as shared/data/hololens-office), this
 measures |warp with the true depth - warp with a constant depth (the frame's median)| in pixels,
 over valid pixels, and prints its median per offset k. Rotation moves pixels by the same amount at
 any depth, so only translation (parallax) shows up here.
 
     python benchmarks/quality/parallax.py /tmp/quality/data/scene [--offsets 1,2,3,5,10,20]
+    python benchmarks/quality/parallax.py ../shared/data/hololens-office --offsets 1,2,3,5
 """
 
 from __future__ import annotations
@@ -19,12 +22,27 @@ import numpy as np
 from relocdepth.ingest.intrinsics import load_calibration
 
 
-def load(seq: Path, stride: int):
-    frames = sorted(seq.glob("frame-*.pose.txt"))[::stride]
-    T = np.stack([np.loadtxt(p) for p in frames])
-    D = np.stack([cv2.imread(str(p).replace(".pose.txt", ".depth.png"), cv2.IMREAD_UNCHANGED)
-                  .astype(np.float64) / 1000.0 for p in frames])
-    return T, D
+def _depth_png(path: Path) -> np.ndarray:
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
+
+
+def sequences(scene: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(K, T_wc per frame, depth per frame) of each sequence of ``scene``."""
+    if (scene / "poses.txt").is_file():  # one walk-through: images/, depth/, poses.txt, K.txt
+        K = np.loadtxt(scene / "K.txt").reshape(3, 3)
+        T = np.loadtxt(scene / "poses.txt").reshape(-1, 4, 4)
+        D = np.stack([_depth_png(p) for p in sorted((scene / "depth").glob("*.png"))])
+        if len(D) != len(T):
+            raise SystemExit(f"{scene}: {len(T)} poses but {len(D)} depth maps")
+        return [(K, T, D)]
+    K = np.asarray(load_calibration(scene / "intrinsics.yaml").intrinsics.K(), dtype=np.float64)
+    out = []
+    for seq in sorted(p for p in scene.glob("seq-*") if p.is_dir()):
+        frames = sorted(seq.glob("frame-*.pose.txt"))
+        T = np.stack([np.loadtxt(p) for p in frames])
+        D = np.stack([_depth_png(Path(str(p).replace(".pose.txt", ".depth.png"))) for p in frames])
+        out.append((K, T, D))
+    return out
 
 
 def depth_flow(K: np.ndarray, D: np.ndarray, T_t: np.ndarray, T_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -44,19 +62,17 @@ def depth_flow(K: np.ndarray, D: np.ndarray, T_t: np.ndarray, T_s: np.ndarray) -
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scene", type=Path, help="7-Scenes-layout scene (seq-XX/, intrinsics.yaml)")
+    ap.add_argument("scene", type=Path, help="7-Scenes-layout scene, or a folder with depth/, poses.txt, K.txt")
     ap.add_argument("--offsets", default="1,2,3,5,10,20", help="frame offsets k")
     ap.add_argument("--every", type=int, default=10, help="use every Nth frame as a target")
     a = ap.parse_args()
-    K = np.asarray(load_calibration(a.scene / "intrinsics.yaml").intrinsics.K(), dtype=np.float64)
     offsets = [int(k) for k in a.offsets.split(",")]
-    seqs = sorted(p for p in a.scene.glob("seq-*") if p.is_dir())
-    print(f"{a.scene}: fx {K[0, 0]:.1f}; |warp(true depth) - warp(median depth)| in pixels, "
+    seqs = sequences(a.scene)
+    print(f"{a.scene}: fx {seqs[0][0][0, 0]:.1f}; |warp(true depth) - warp(median depth)| in pixels, "
           "median over frame pairs of the per-pair median and 90th percentile; the whole warp beside it")
     for k in offsets:
         vals, p90s, flows, moves = [], [], [], []
-        for seq in seqs:
-            T, D = load(seq, 1)
+        for K, T, D in seqs:
             for t in range(0, len(T) - k, a.every):
                 dflow, flow = depth_flow(K, D[t], T[t], T[t + k])
                 vals.append(np.median(dflow))
