@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from relocdepth.errors import UserError
-from relocdepth.fileio import atomic_write
+from relocdepth.fileio import atomic_write, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +50,7 @@ def checkpoint_dir(run_dir: str | Path) -> Path:
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
-    data = (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode()
-    atomic_write(Path(path), lambda f: f.write(data))
+    write_bytes_atomic(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
 
 
 def list_checkpoints(run_or_dir: str | Path) -> list[Path]:

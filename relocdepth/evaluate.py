@@ -205,7 +205,7 @@ def evaluate(
     from relocdepth.schemas import validate
 
     ds = open_dataset(shards)
-    train_recs, test_recs = _checked_records(ds, tuple(cfg.test_sequences))
+    train_recs, test_recs = _checked_records(ds, cfg.test_sequences)
     predictor = Predictor.from_checkpoint(checkpoint, device=cfg.device)
     ckpt_path = Path(predictor.meta["path"])
     report_path = Path(report_path) if report_path else ckpt_path.parent.parent / "eval" / "report.json"

@@ -1,14 +1,14 @@
 """How many pixels of warp does depth explain, for frames k apart? (issue 6, trial 4)
 
 Photometric losses learn depth only from the part of the warp that depth changes. For target
-frames t and sources s = t + k of a scene with ground-truth depth and poses (7-Scenes layout:
-seq-XX/ + intrinsics.yaml; or one walk-through as images/, depth/ (uint16 mm), poses.txt (a
-row-major 4x4 camera-to-world matrix per line) and K.txt, as shared/data/hololens-office), this
-measures |warp with the true depth - warp with a constant depth (the frame's median)| in pixels,
-over valid pixels, and prints its median per offset k. Rotation moves pixels by the same amount at
-any depth, so only translation (parallax) shows up here.
+frames t and sources s = t + k of a dataset with ground-truth depth and poses (shards written by
+`reloc ingest`, read with the project's reader; or one walk-through folder of depth/ (uint16 mm),
+poses.txt (a row-major 4x4 camera-to-world matrix per line) and K.txt, as
+shared/data/hololens-office), this measures |warp with the true depth - warp with a constant depth
+(the frame's median)| in pixels, over valid pixels, and prints its median per offset k. Rotation
+moves pixels by the same amount at any depth, so only translation (parallax) shows up here.
 
-    python benchmarks/quality/parallax.py /tmp/quality/data/scene [--offsets 1,2,3,5,10,20]
+    python benchmarks/quality/parallax.py /tmp/quality/data/shards [--offsets 1,2,3,5,10,20]
     python benchmarks/quality/parallax.py ../shared/data/hololens-office --offsets 1,2,3,5
 """
 
@@ -19,29 +19,29 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from relocdepth.ingest.intrinsics import load_calibration
+
+from relocdepth.dataset import DEPTH_SCALE, open_dataset
 
 
-def _depth_png(path: Path) -> np.ndarray:
-    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
-
-
-def sequences(scene: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """(K, T_wc per frame, depth per frame) of each sequence of ``scene``."""
-    if (scene / "poses.txt").is_file():  # one walk-through: images/, depth/, poses.txt, K.txt
-        K = np.loadtxt(scene / "K.txt").reshape(3, 3)
-        T = np.loadtxt(scene / "poses.txt").reshape(-1, 4, 4)
-        D = np.stack([_depth_png(p) for p in sorted((scene / "depth").glob("*.png"))])
+def sequences(path: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(K, T_wc per frame, depth in metres per frame) of each sequence at ``path``."""
+    if (path / "poses.txt").is_file():  # one walk-through: depth/, poses.txt, K.txt
+        K = np.loadtxt(path / "K.txt").reshape(3, 3)
+        T = np.loadtxt(path / "poses.txt").reshape(-1, 4, 4)
+        D = np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) / DEPTH_SCALE
+                      for p in sorted((path / "depth").glob("*.png"))])
         if len(D) != len(T):
-            raise SystemExit(f"{scene}: {len(T)} poses but {len(D)} depth maps")
+            raise SystemExit(f"{path}: {len(T)} poses but {len(D)} depth maps")
         return [(K, T, D)]
-    K = np.asarray(load_calibration(scene / "intrinsics.yaml").intrinsics.K(), dtype=np.float64)
+    ds = open_dataset(path)
     out = []
-    for seq in sorted(p for p in scene.glob("seq-*") if p.is_dir()):
-        frames = sorted(seq.glob("frame-*.pose.txt"))
-        T = np.stack([np.loadtxt(p) for p in frames])
-        D = np.stack([_depth_png(Path(str(p).replace(".pose.txt", ".depth.png"))) for p in frames])
-        out.append((K, T, D))
+    for name in ds.sequences():
+        recs = [r for r in ds.records if r.sequence == name and r.has_pose and r.has_depth]
+        if recs:
+            out.append((recs[0].intrinsics.K(), np.stack([ds.read_pose(r) for r in recs]),
+                        np.stack([ds.read_depth(r).astype(np.float64) for r in recs])))
+    if not out:
+        raise SystemExit(f"{path}: no frames with ground-truth depth and poses")
     return out
 
 
@@ -62,13 +62,13 @@ def depth_flow(K: np.ndarray, D: np.ndarray, T_t: np.ndarray, T_s: np.ndarray) -
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scene", type=Path, help="7-Scenes-layout scene, or a folder with depth/, poses.txt, K.txt")
+    ap.add_argument("data", type=Path, help="shards from `reloc ingest`, or a folder with depth/, poses.txt, K.txt")
     ap.add_argument("--offsets", default="1,2,3,5,10,20", help="frame offsets k")
     ap.add_argument("--every", type=int, default=10, help="use every Nth frame as a target")
     a = ap.parse_args()
     offsets = [int(k) for k in a.offsets.split(",")]
-    seqs = sequences(a.scene)
-    print(f"{a.scene}: fx {seqs[0][0][0, 0]:.1f}; |warp(true depth) - warp(median depth)| in pixels, "
+    seqs = sequences(a.data)
+    print(f"{a.data}: fx {seqs[0][0][0, 0]:.1f}; |warp(true depth) - warp(median depth)| in pixels, "
           "median over frame pairs of the per-pair median and 90th percentile; the whole warp beside it")
     for k in offsets:
         vals, p90s, flows, moves = [], [], [], []
