@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from relocdepth.geometry import quat_conj, quat_log, quat_mul
+from relocdepth.geometry import quat_conj, quat_from_matrix, quat_log, quat_mul
 
 # SSIM constants (Wang et al. 2004) for images in [0, 1], as monodepth2.
 SSIM_C1 = 0.01**2
@@ -92,3 +92,12 @@ def pose_coordinate_loss(q_cells: Tensor, c_cells: Tensor, q: Tensor, c: Tensor)
     dr = quat_log(quat_mul(quat_conj(q).unsqueeze(1), q_cells))
     dt = c_cells - c.unsqueeze(1)
     return torch.linalg.vector_norm(torch.cat((dr, dt), dim=-1), dim=-1).mean(dim=1)
+
+
+def relative_pose_consistency(T_a: Tensor, T_b: Tensor) -> Tensor:
+    """Distance between relative poses ``(N, 4, 4)``: ``|| [log(R_a^T R_b), t_a - t_b] ||_2`` per pair
+    ``(N,)`` (radians and depth units, like ``L_c``). Used by the training bootstrap to teach the
+    DSC network another source's relative poses; the gradient is finite where they agree."""
+    dr = quat_log(quat_from_matrix(T_a[:, :3, :3].transpose(-1, -2) @ T_b[:, :3, :3]))
+    dt = T_a[:, :3, 3] - T_b[:, :3, 3]
+    return torch.linalg.vector_norm(torch.cat((dr, dt), dim=-1), dim=-1)

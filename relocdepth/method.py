@@ -19,6 +19,7 @@ from relocdepth import geometry as geo
 from relocdepth.losses import (
     photometric_loss,
     pose_coordinate_loss,
+    relative_pose_consistency,
     smoothness_loss,
 )
 from relocdepth.models import Networks, disp_to_depth
@@ -28,7 +29,8 @@ from relocdepth.models import Networks, disp_to_depth
 CONF_ROT_DEG = 5.0
 CONF_TRANS_REL = 0.05
 
-__all__ = ["PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "MethodConfig", "pairs_for", "predict", "triplet_loss"]
+__all__ = ["PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "Bootstrap", "MethodConfig", "bootstrap_poses",
+           "pairs_for", "predict", "triplet_loss"]
 
 # (target, source) frame indices of a triplet; the middle frame is index 1.
 PAIRS_LCVS: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
@@ -61,6 +63,46 @@ class MethodConfig:
     def __post_init__(self) -> None:
         if self.photometric_pixels not in PHOTOMETRIC_PIXELS:
             raise ValueError(f"photometric_pixels must be one of {PHOTOMETRIC_PIXELS}, not {self.photometric_pixels!r}")
+
+
+@dataclass(frozen=True)
+class Bootstrap:
+    """This step's relative-pose bootstrap (not the paper's; see ``TrainConfig.bootstrap``).
+
+    Early in training the DSC network cannot yet tell where an image was taken, so the relative
+    poses it implies are wrong, the warps are wrong, and depth cannot learn (nor, without depth,
+    the DSC). The bootstrap takes the triplet's poses from another source for the warps, so depth
+    learns first, and teaches the DSC network those relative poses through a consistency term;
+    then the warps switch to the DSC poses (the paper's loss) while the term fades out.
+
+    ``warps``: the warps use the bootstrap poses (else the DSC's). ``w_consistency``: weight of
+    ``L_boot`` (0: not computed). ``T_wc``: ``(B, 3, 4, 4)`` poses of the triplet's frames given from
+    outside (the research oracle: ground truth), or None to use ``nets.relpose``.
+    """
+
+    warps: bool
+    w_consistency: float
+    T_wc: Tensor | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.warps or self.w_consistency > 0
+
+
+def bootstrap_poses(nets: Networks, inputs: Tensor, T_wc: Tensor | None = None) -> Tensor:
+    """The triplet's poses ``(B, 3, 4, 4)`` in the middle camera's frame (frame 1 = identity).
+
+    From ``T_wc`` (any world frame) when given, else from the two-frame network on the jittered
+    ``inputs (B, 3, 3, H, W)``: ``T_wc(i) = T_{1->i}^-1`` with ``T_{1->i} = relpose(I_1, I_i)``.
+    """
+    if T_wc is not None:
+        return geo.invert_pose(T_wc[:, 1:2]) @ T_wc
+    B = inputs.shape[0]
+    mid = inputs[:, 1]
+    T_1i = nets.relpose(torch.cat((mid, mid)), torch.cat((inputs[:, 0], inputs[:, 2])))  # (2B, 4, 4)
+    T_1i = T_1i.to(_geometry_dtype(inputs))
+    eye = torch.eye(4, dtype=T_1i.dtype, device=T_1i.device).expand(B, 4, 4)
+    return torch.stack((geo.invert_pose(T_1i[:B]), eye, geo.invert_pose(T_1i[B:])), dim=1)
 
 
 def pairs_for(cfg: MethodConfig) -> tuple[tuple[int, int], ...]:
@@ -105,7 +147,7 @@ def _geometry_dtype(x: Tensor) -> torch.dtype:
 
 
 def triplet_loss(
-    nets: Networks, images: Tensor, inputs: Tensor, K: Tensor, cfg: MethodConfig
+    nets: Networks, images: Tensor, inputs: Tensor, K: Tensor, cfg: MethodConfig, boot: Bootstrap | None = None
 ) -> tuple[Tensor, dict[str, Tensor], dict[str, float]]:
     """Training loss of a batch of triplets (loop-closed view synthesis).
 
@@ -116,6 +158,7 @@ def triplet_loss(
         inputs: ``(B, 3, 3, H, W)``, the colour-jittered network inputs.
         K: ``(B, 3, 3, 3)`` per-image intrinsics at ``H x W``.
         cfg: loss options.
+        boot: this step's relative-pose bootstrap, or None (the paper's loss).
 
     Returns:
         ``total`` (scalar), ``parts`` and ``diagnostics``.
@@ -131,7 +174,11 @@ def triplet_loss(
         and ``rel_rot_deg`` (mean size of the relative poses of the pairs), ``cell_spread`` (mean
         per-image L_c; 0 w/o DSC), ``valid_frac`` (valid-pixel fraction at scale 0),
         ``median_depth``, and ``lp_identity`` (L_p of the unwarped source images: the no-motion
-        reference that L_p must beat).
+        reference that L_p must beat). With an active ``boot``: ``parts["L_boot"]`` (the consistency
+        of the DSC's relative poses with the bootstrap's, added with weight ``boot.w_consistency``)
+        and diagnostics ``boot_warps`` (1 when the warps use the bootstrap poses), ``boot_rel_trans``,
+        ``boot_rel_rot_deg`` (size of the bootstrap's relative poses) and ``dsc_boot_trans``,
+        ``dsc_boot_rot_deg`` (how far the DSC's relative poses are from them).
     """
     _check_triplets(images, inputs, K)
     B, _, C, H, W = images.shape
@@ -140,12 +187,19 @@ def triplet_loss(
     dt = _geometry_dtype(images)
     disps = [d.to(dt) for d in nets.depth(x)[: cfg.num_scales]]
     pose_out = (nets.dsc(x) if cfg.use_dsc else nets.pose(x)).to(dt)
+    T_boot = None
+    if boot is not None and boot.active:
+        # The two-frame network learns only through the warps it drives; otherwise its poses are a
+        # fixed target for the consistency term.
+        with torch.set_grad_enabled(torch.is_grad_enabled() and boot.warps):
+            T_boot = bootstrap_poses(nets, inputs, None if boot.T_wc is None else boot.T_wc.to(dt)).to(dt)
     with torch.autocast(images.device.type, enabled=False):
-        return _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg)
+        return _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot)
 
 
 def _triplet_loss_fp32(
-    disps: list[Tensor], pose_out: Tensor, images: Tensor, K: Tensor, cfg: MethodConfig
+    disps: list[Tensor], pose_out: Tensor, images: Tensor, K: Tensor, cfg: MethodConfig,
+    T_boot: Tensor | None = None, boot: Bootstrap | None = None,
 ) -> tuple[Tensor, dict[str, Tensor], dict[str, float]]:
     """The part of :func:`triplet_loss` after the networks (full precision)."""
     B, _, C, H, W = images.shape
@@ -169,7 +223,28 @@ def _triplet_loss_fp32(
     def flat(a: Tensor) -> Tensor:  # (B, P, ...) -> (B * P, ...)
         return a.reshape(B * P, *a.shape[2:])
 
-    T_t2s = flat(geo.relative_pose(T[:, t_idx], T[:, s_idx]))
+    def pair_poses(T_wc: Tensor) -> Tensor:  # (B, 3, 4, 4) -> T_t2s of every pair (B * P, 4, 4)
+        return flat(geo.relative_pose(T_wc[:, t_idx], T_wc[:, s_idx]))
+
+    use_boot = T_boot is not None and boot is not None
+    T_t2s = pair_poses(T_boot if use_boot and boot.warps else T)  # type: ignore[union-attr]
+    boot_parts: dict[str, Tensor] = {}
+    boot_diag: dict[str, float] = {}
+    if use_boot:
+        assert T_boot is not None and boot is not None
+        # The DSC learns the bootstrap's relative poses; depth is detached here so that the term
+        # teaches the DSC network, not the depth network, where the cameras are.
+        T_cons = T if not cfg.use_dsc else _absolute_poses(
+            pose_out, depths[0].detach(), Kf, cfg.use_dsc, "mean")[0].reshape(B, 3, 4, 4)
+        rel_net, rel_boot = pair_poses(T_cons), pair_poses(T_boot.detach())
+        err = relative_pose_consistency(rel_net, rel_boot)  # (B * P,)
+        boot_parts["L_boot"] = err.mean()
+        with torch.no_grad():
+            t_b, r_b = geo.pose_errors(rel_boot, torch.eye(4, dtype=T.dtype, device=T.device))
+            t_d, r_d = geo.pose_errors(rel_net.detach(), rel_boot)
+            boot_diag = {"boot_warps": float(boot.warps), "boot_rel_trans": float(t_b.mean()),
+                         "boot_rel_rot_deg": float(r_b.mean()), "dsc_boot_trans": float(t_d.mean()),
+                         "dsc_boot_rot_deg": float(r_d.mean())}
     K_t, K_s = flat(K[:, t_idx]), flat(K[:, s_idx])
     I_t, I_s = flat(images[:, t_idx]), flat(images[:, s_idx])
 
@@ -200,7 +275,9 @@ def _triplet_loss_fp32(
     L_s = torch.stack(ls_scales).mean()
     L_c = l_c_img.mean() if l_c_img is not None else images.new_zeros(())
     total = L_p + cfg.w_s * L_s + cfg.w_c * L_c
-    parts.update({"L_p": L_p, "L_s": L_s, "L_c": L_c})
+    if "L_boot" in boot_parts and boot is not None and boot.w_consistency > 0:
+        total = total + boot.w_consistency * boot_parts["L_boot"]
+    parts.update({"L_p": L_p, "L_s": L_s, "L_c": L_c, **boot_parts})
     for i, (t, s) in enumerate(pairs):
         parts[f"L_p/pair_{t}{s}"] = lp_pairs[i]
 
@@ -209,6 +286,7 @@ def _triplet_loss_fp32(
         ones = torch.ones_like(I_t[:, :1])
         diag["lp_identity"] = float(photometric_loss(I_t, I_s, ones, cfg.alpha).mean())
         diag["valid_frac"] = valid_frac
+        diag.update(boot_diag)
     return total, parts, diag
 
 

@@ -41,6 +41,8 @@ from relocdepth.trainlog import TrainLog
 log = logging.getLogger(__name__)
 
 CONFIG_NAME = "config.json"
+# Sources of the relative-pose bootstrap (TrainConfig.bootstrap); "oracle-gt" reads ground truth.
+BOOTSTRAP_SOURCES = ("off", "posenet", "oracle-gt")
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,15 @@ class TrainConfig:
     w_c: float = 0.03  # paper IV-B: pose coordinate weight
     photometric_pixels: str = "valid"  # L_p over "valid" pixels (DESIGN.md) or "all" (monodepth2)
     recompute_warps: bool = False  # checkpoint the warps/SSIM: less memory, a little more time
+    # Relative-pose bootstrap (not in the paper; README, fidelity): for the first bootstrap_steps the
+    # warps use relative poses from "posenet" (a two-frame network trained by the same photometric
+    # loss) or "oracle-gt" (RESEARCH ONLY: the dataset's ground-truth poses), while the DSC network
+    # learns them through a consistency term of weight w_bootstrap, which then fades out linearly over
+    # bootstrap_fade_steps steps while the warps use the DSC poses (the paper's loss).
+    bootstrap: str = "off"
+    bootstrap_steps: int = 0
+    bootstrap_fade_steps: int = 500
+    w_bootstrap: float = 1.0
     seed: int = 0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
@@ -78,6 +89,7 @@ class TrainConfig:
     amp_dtype: str = "bf16"  # bf16 | fp16 (fp16 uses a GradScaler)
     channels_last: bool = False  # CUDA memory format for the convolutions
     max_steps: int | None = None  # stop after this many steps (None: run all epochs)
+    max_minutes: float | None = None  # stop after this much training wall time (minutes)
     log_every: int = 10  # JSONL/TensorBoard every N steps
     checkpoint_every: int = 500  # steps between checkpoints (plus one at the end)
     keep_last: int = 3  # checkpoints kept (older ones deleted)
@@ -97,6 +109,14 @@ class TrainConfig:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1")
         if self.max_steps is not None and self.max_steps < 0:
             raise UserError("--max-steps must be >= 0")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise UserError(f"--max-minutes must be > 0, not {self.max_minutes}")
+        if self.bootstrap not in BOOTSTRAP_SOURCES:
+            raise UserError(f"--bootstrap must be one of {', '.join(BOOTSTRAP_SOURCES)}, not {self.bootstrap!r}")
+        if self.bootstrap != "off" and self.bootstrap_steps < 1:
+            raise UserError(f"--bootstrap {self.bootstrap} needs --bootstrap-steps >= 1")
+        if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
+            raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         self.augment_config()  # validates the size
         self.sampler_config()
 
@@ -122,9 +142,21 @@ class TrainConfig:
         return cls(**d)
 
 
+def bootstrap_at(cfg: TrainConfig, step: int) -> tuple[bool, float]:
+    """(warps use the bootstrap poses, weight of the consistency term) at ``step``."""
+    if cfg.bootstrap == "off":
+        return False, 0.0
+    if step < cfg.bootstrap_steps:
+        return True, cfg.w_bootstrap
+    done = step - cfg.bootstrap_steps
+    if done >= cfg.bootstrap_fade_steps:
+        return False, 0.0
+    return False, cfg.w_bootstrap * (1.0 - done / cfg.bootstrap_fade_steps)
+
+
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
 RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "recompute_warps", "max_steps",
-                      "log_every", "checkpoint_every", "keep_last", "max_nonfinite", "progress", "resume", "epochs")
+                      "max_minutes", "log_every", "checkpoint_every", "keep_last", "max_nonfinite", "progress", "resume", "epochs")
 
 
 @dataclass
@@ -160,6 +192,7 @@ class Trainer:
     method_cfg: Any
     model_cfg: Any
     log: TrainLog
+    gt_poses: Any = None  # (N, 4, 4) float32 tensor of the research oracle, else None
 
 
 # -- setup -----------------------------------------------------------------------------------------
@@ -173,7 +206,8 @@ def _method_and_model_configs(cfg: TrainConfig) -> tuple[Any, Any]:
 
     common = {"lcvs": cfg.lcvs, "use_dsc": cfg.use_dsc, "alpha": cfg.alpha, "w_s": cfg.w_s, "w_c": cfg.w_c,
               "photometric_pixels": cfg.photometric_pixels, "recompute_warps": cfg.recompute_warps}
-    return build(MethodConfig, common), build(ModelConfig, {"pretrained": cfg.pretrained, "use_dsc": cfg.use_dsc})
+    return build(MethodConfig, common), build(ModelConfig, {"pretrained": cfg.pretrained, "use_dsc": cfg.use_dsc,
+                                                            "relpose": cfg.bootstrap == "posenet"})
 
 
 class _LossModule:
@@ -191,8 +225,8 @@ class _LossModule:
                 super().__init__()
                 self.nets = nets
 
-            def forward(self, images: Any, inputs: Any, K: Any) -> Any:
-                return triplet_loss(self.nets, images, inputs, K, method_cfg)
+            def forward(self, images: Any, inputs: Any, K: Any, boot: Any = None) -> Any:
+                return triplet_loss(self.nets, images, inputs, K, method_cfg, boot)
 
         return TripletLossModule()
 
@@ -218,11 +252,37 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path) -> tuple[TrainConfig, dict 
     return dataclasses.replace(saved, **overrides), ck, latest
 
 
+def research_gt_poses(shards: str | Path, frames: ImageFrames) -> np.ndarray:
+    """RESEARCH ORACLE ONLY: the ground-truth poses ``(N, 4, 4)`` of ``frames``, in their order.
+
+    Training never reads ground truth otherwise (``ImageFrames`` holds none); this exists for
+    ``--bootstrap oracle-gt``, which measures what depth learns when the warps get true relative
+    poses. Refused (UserError) on data without poses.
+    """
+    from relocdepth.dataset import open_dataset
+    from relocdepth.remote import local_dataset
+
+    ds = open_dataset(local_dataset(shards))
+    try:
+        by_key = {r.key: r for r in ds.frames()}
+        missing = [f.key for f in frames.frames if not by_key[f.key].has_pose]
+        if missing:
+            raise UserError(f"--bootstrap oracle-gt needs ground-truth poses, and {len(missing)} training frames "
+                            f"of {shards} have none (first: {missing[0]}); use --bootstrap posenet")
+        return np.stack([ds.read_pose(by_key[f.key]) for f in frames.frames]).astype(np.float32)
+    finally:
+        ds.close()
+
+
 def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer, RunState]:
     import torch
 
     frames = ImageFrames.open(shards)  # user errors before anything is written
     cfg, ck, ck_path = _resolve_config(cfg, run_dir)
+    gt_poses = None
+    if cfg.bootstrap == "oracle-gt":
+        gt_poses = torch.from_numpy(research_gt_poses(shards, frames))
+        log.warning("RESEARCH ORACLE: the warps of the first %d steps use ground-truth poses", cfg.bootstrap_steps)
     if ck is not None:
         ckpt_io.check_same_dataset(ck["meta"], frames.manifest_hash, ck_path)  # type: ignore[arg-type]
     dist, device = init_distributed(cfg.device)
@@ -248,7 +308,9 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     if dist.enabled:
         from torch.nn.parallel import DistributedDataParallel as DDP
 
-        loss_module = DDP(loss_module, device_ids=[device.index] if device.type == "cuda" else None)
+        # The bootstrap's two-frame network gets no gradient once the warps use the DSC poses.
+        loss_module = DDP(loss_module, device_ids=[device.index] if device.type == "cuda" else None,
+                          find_unused_parameters=cfg.bootstrap != "off")
     if dist.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         ckpt_io.atomic_write_json(run_dir / CONFIG_NAME, {
@@ -258,7 +320,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     total = _total_steps(sampler, cfg)
     tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs)
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
-                 method_cfg, model_cfg, tlog)
+                 method_cfg, model_cfg, tlog, gt_poses)
     return tr, state
 
 
@@ -362,18 +424,27 @@ def sample(tr: Trainer, state: RunState, batch: dict[str, Any]) -> dict[str, Any
         "images": batch["images"].to(dev, non_blocking=nb).float().div_(255.0),
         "inputs": batch["inputs"].to(dev, non_blocking=nb).float().div_(255.0),
         "K": batch["K"].to(dev, non_blocking=nb),
+        "index": batch["index"],
         "n": int(batch["images"].shape[0]),
         "global_frac": batch["global_frac"],
     }
 
 
-def forward_losses(tr: Trainer, b: dict[str, Any]) -> tuple[Any, dict[str, Any], dict[str, float]]:
-    """Named step: both networks on the triplets, the paper's loss, its parts and diagnostics."""
+def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0) -> tuple[Any, dict[str, Any], dict[str, float]]:
+    """Named step: both networks on the triplets, the paper's loss (plus the bootstrap's, while it
+    lasts), its parts and diagnostics."""
     import torch
 
+    from relocdepth.method import Bootstrap
+
+    boot = None
+    warps, w = bootstrap_at(tr.cfg, step)
+    if warps or w > 0:
+        T_wc = None if tr.gt_poses is None else tr.gt_poses[b["index"]].to(tr.device)
+        boot = Bootstrap(warps, w, T_wc)
     dtype = torch.bfloat16 if tr.cfg.amp_dtype == "bf16" else torch.float16
     with torch.autocast(tr.device.type, dtype=dtype, enabled=tr.cfg.amp):
-        return tr.loss_module(b["images"], b["inputs"], b["K"])
+        return tr.loss_module(b["images"], b["inputs"], b["K"], boot)
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
@@ -455,6 +526,7 @@ def _epoch_batches(tr: Trainer, state: RunState, stop: _StopRequest):
 def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
     cfg = tr.cfg
     last_t, last_n = time.perf_counter(), 0
+    deadline = None if cfg.max_minutes is None else last_t + 60.0 * cfg.max_minutes
     rate: float | None = None
     while state.epoch < cfg.epochs:
         if cfg.max_steps is not None and state.step >= cfg.max_steps:
@@ -472,7 +544,7 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
             if no_data:
                 tr.log.event("empty_batch", state.step)
             else:
-                loss, parts, diag = forward_losses(tr, b)
+                loss, parts, diag = forward_losses(tr, b, state.step)
                 stepped = optimizer_step(tr, state, loss)
                 if not stepped and state.nonfinite_streak >= cfg.max_nonfinite:
                     state.stop = "diverged"
@@ -492,6 +564,10 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
                 checkpoint(tr, state)
             if cfg.max_steps is not None and state.step >= cfg.max_steps:
                 state.stop = "max_steps"
+                return
+            # every rank stops at the same step
+            if deadline is not None and any_rank(tr.dist, [time.perf_counter() >= deadline], tr.device)[0]:
+                state.stop = "max_minutes"
                 return
         if state.position >= tr.sampler.epoch_length(state.epoch):
             state.epoch, state.position = state.epoch + 1, 0

@@ -11,6 +11,7 @@ from relocdepth.models.depth import DepthNet, disp_to_depth
 from relocdepth.models.dsc import DSCNet
 from relocdepth.models.encoder import ResNet18Encoder
 from relocdepth.models.pose import AbsPoseNet
+from relocdepth.models.relpose import RelPoseNet
 
 log = logging.getLogger(__name__)
 
@@ -20,6 +21,7 @@ __all__ = [
     "DepthNet",
     "ModelConfig",
     "Networks",
+    "RelPoseNet",
     "ResNet18Encoder",
     "build_networks",
     "disp_to_depth",
@@ -32,13 +34,15 @@ class ModelConfig:
 
     pretrained: str | None = None  # None: random init; "imagenet": official URL; else a local .pth file
     use_dsc: bool = True  # False: the paper's "w/o DSC" ablation (absolute-pose head)
+    relpose: bool = False  # a two-frame relative-pose network for the training bootstrap (not the paper's)
     min_depth: float = 0.1
     max_depth: float = 100.0
 
 
 class Networks(nn.Module):
     """The trained networks: ``.depth`` (:class:`DepthNet`) and ``.dsc`` (:class:`DSCNet`), or
-    ``.pose`` (:class:`AbsPoseNet`) instead of ``.dsc`` when ``cfg.use_dsc`` is False."""
+    ``.pose`` (:class:`AbsPoseNet`) instead of ``.dsc`` when ``cfg.use_dsc`` is False; plus
+    ``.relpose`` (:class:`RelPoseNet`, training only) when ``cfg.relpose`` is True."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -48,6 +52,8 @@ class Networks(nn.Module):
             self.dsc = DSCNet()
         else:
             self.pose = AbsPoseNet()
+        if cfg.relpose:
+            self.relpose = RelPoseNet()
 
     @property
     def pose_net(self) -> nn.Module:
@@ -64,6 +70,8 @@ def build_networks(cfg: ModelConfig) -> Networks:
     """
     nets = Networks(cfg)
     encoders = [nets.depth.encoder, nets.pose_net.encoder]
+    if cfg.relpose:
+        encoders.append(nets.relpose.encoder)
     if cfg.pretrained is None:
         log.info("encoders randomly initialised (no pretrained weights asked for)")
         return nets

@@ -60,9 +60,11 @@ class ResNet18Encoder(nn.Module):
 
     num_ch_enc = NUM_CH_ENC
 
-    def __init__(self) -> None:
+    def __init__(self, num_images: int = 1) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
+        # num_images > 1: the images are stacked along channels (monodepth2's two-frame pose encoder).
+        self.in_channels = 3 * num_images
+        self.conv1 = nn.Conv2d(self.in_channels, 64, 7, 2, 3, bias=False)
         self.bn1 = nn.BatchNorm2d(64)
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(3, 2, 1)
@@ -79,8 +81,8 @@ class ResNet18Encoder(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def forward(self, x: Tensor) -> list[Tensor]:
-        if x.ndim != 4 or x.shape[1] != 3:
-            raise ValueError(f"encoder input must be (B, 3, H, W), got {tuple(x.shape)}")
+        if x.ndim != 4 or x.shape[1] != self.in_channels:
+            raise ValueError(f"encoder input must be (B, {self.in_channels}, H, W), got {tuple(x.shape)}")
         check_image_size(x.shape[-2], x.shape[-1])
         f1 = self.relu(self.bn1(self.conv1((x - INPUT_MEAN) / INPUT_STD)))
         f2 = self.layer1(self.maxpool(f1))
@@ -143,6 +145,10 @@ def load_torchvision_state_dict(encoder: nn.Module, state: dict[str, Tensor], so
     """Copy a torchvision ResNet18 state dict into ``encoder`` (``fc.*`` ignored); UserError naming
     the first missing key or wrong shape otherwise."""
     own = encoder.state_dict()
+    n_img = own["conv1.weight"].shape[1] // 3 if "conv1.weight" in own else 1
+    if n_img > 1 and isinstance(state.get("conv1.weight"), Tensor) and state["conv1.weight"].shape[1] == 3:
+        # monodepth2's multi-image encoder: the RGB filters repeated per image, divided by their count
+        state = {**state, "conv1.weight": state["conv1.weight"].repeat(1, n_img, 1, 1) / n_img}
     missing = [k for k in own if k not in state]
     if missing:
         raise UserError(f"{source} is not a torchvision resnet18 state dict: {len(missing)} keys missing "

@@ -1,0 +1,193 @@
+"""The relative-pose bootstrap: the two-frame network, the triplet's poses, the consistency term,
+the schedule, and the hand-over from bootstrap warps to the DSC's (the paper's loss)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from relocdepth import geometry as geo
+from relocdepth.losses import relative_pose_consistency
+from relocdepth.method import Bootstrap, MethodConfig, bootstrap_poses, triplet_loss
+from relocdepth.models import ModelConfig, Networks, RelPoseNet
+
+torch.set_num_threads(1)
+H, W = 64, 96
+
+
+def _random_poses(n: int, seed: int, rot_deg: float = 20.0, trans: float = 0.3) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    T = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+    axis = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    angle = torch.rand(n, 1, generator=gen, dtype=torch.float64) * math.radians(rot_deg)
+    T[:, :3, :3] = geo.so3_exp(axis / axis.norm(dim=-1, keepdim=True) * angle)
+    T[:, :3, 3] = (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5) * 2 * trans
+    return T
+
+
+def _K(B: int) -> torch.Tensor:
+    K = torch.tensor([[60.0, 0, (W - 1) / 2], [0, 60.0, (H - 1) / 2], [0, 0, 1]])
+    return K.expand(B, 3, 3, 3).clone()
+
+
+def test_relpose_net_starts_near_identity() -> None:
+    torch.manual_seed(0)
+    net = RelPoseNet()
+    x = torch.rand(4, 3, H, W)
+    T = net(x, x.flip(0))
+    t_err, r_err = geo.pose_errors(T, torch.eye(4).expand(4, 4, 4))
+    assert float(t_err.detach().max()) < 0.02 and float(r_err.detach().max()) < 1.0  # 0.01-scaled outputs
+    assert torch.allclose(T[:, :3, :3] @ T[:, :3, :3].transpose(1, 2), torch.eye(3).expand(4, 3, 3), atol=1e-5)
+    with pytest.raises(ValueError):
+        net(x, x[:, :2])
+
+
+def test_bootstrap_poses_are_the_middle_camera_frame_and_keep_relative_poses() -> None:
+    T = _random_poses(6, seed=1).reshape(2, 3, 4, 4)
+    boot = bootstrap_poses(None, torch.zeros(2, 3, 3, H, W, dtype=torch.float64), T)  # type: ignore[arg-type]
+    assert torch.allclose(boot[:, 1], torch.eye(4, dtype=torch.float64).expand(2, 4, 4), atol=1e-12)
+    for t in range(3):
+        for s in range(3):
+            assert torch.allclose(geo.relative_pose(boot[:, t], boot[:, s]),
+                                  geo.relative_pose(T[:, t], T[:, s]), atol=1e-10)
+
+
+def test_posenet_path_uses_the_same_convention_as_the_oracle(monkeypatch: pytest.MonkeyPatch) -> None:
+    """If the two-frame network returned the true T_{1->i} (points of camera 1 into camera i, the
+    warp's T_t2s), the triplet's poses must equal the ground truth's in the middle camera's frame."""
+    torch.manual_seed(0)
+    nets = Networks(ModelConfig(relpose=True))
+    T = _random_poses(6, seed=2).float().reshape(2, 3, 4, 4)
+    true_1i = torch.cat((geo.relative_pose(T[:, 1], T[:, 0]), geo.relative_pose(T[:, 1], T[:, 2])))
+    monkeypatch.setattr(nets.relpose, "forward", lambda a, b: true_1i)
+    got = bootstrap_poses(nets, torch.rand(2, 3, 3, H, W))
+    want = bootstrap_poses(nets, torch.rand(2, 3, 3, H, W), T)
+    assert torch.allclose(got, want, atol=1e-5)
+
+
+def test_relative_pose_consistency_measures_angle_and_translation() -> None:
+    Ta = _random_poses(5, seed=3)
+    assert torch.allclose(relative_pose_consistency(Ta, Ta), torch.zeros(5, dtype=torch.float64), atol=1e-7)
+    # A known rotation offset about any axis and a known translation offset: sqrt(angle^2 + |dt|^2).
+    Tb = Ta.clone()
+    Tb[:, :3, :3] = Ta[:, :3, :3] @ geo.so3_exp(torch.tensor([0.0, 0.0, 0.1], dtype=torch.float64)).expand(5, 3, 3)
+    Tb[:, :3, 3] += torch.tensor([0.03, 0.0, -0.04], dtype=torch.float64)
+    assert torch.allclose(relative_pose_consistency(Ta, Tb), torch.full((5,), math.hypot(0.1, 0.05),
+                                                                          dtype=torch.float64), atol=1e-9)
+    # Finite gradients where the two agree (the hand-over starts there).
+    Tc = Ta.clone().requires_grad_(True)
+    relative_pose_consistency(Tc, Ta).sum().backward()
+    assert torch.isfinite(Tc.grad).all()
+
+
+def test_warps_switch_between_bootstrap_and_dsc_poses() -> None:
+    """A deliberately wrong bootstrap source changes L_p only while it drives the warps."""
+    torch.manual_seed(0)
+    nets = Networks(ModelConfig(relpose=True))
+    imgs = torch.rand(2, 3, 3, H, W)
+    K = _K(2)
+    cfg = MethodConfig(photometric_pixels="all")
+    wrong = _random_poses(6, seed=4, rot_deg=30.0, trans=0.5).float().reshape(2, 3, 4, 4)
+    paper, p_parts, _ = triplet_loss(nets, imgs, imgs, K, cfg)
+    driven, d_parts, d_diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(True, 1.0, wrong))
+    fading, f_parts, f_diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.5, wrong))
+    assert d_diag["boot_warps"] == 1.0 and f_diag["boot_warps"] == 0.0
+    assert float(d_parts["L_p"]) != pytest.approx(float(p_parts["L_p"]), rel=1e-3)  # other warps
+    assert float(f_parts["L_p"]) == pytest.approx(float(p_parts["L_p"]), rel=1e-6)  # DSC warps again
+    # The consistency term is added with its weight.
+    assert float(fading) == pytest.approx(float(paper) + 0.5 * float(f_parts["L_boot"]), rel=1e-5)
+    assert float(f_parts["L_boot"]) > 0.1  # 30 deg / 0.5 units from the DSC's near-identity poses
+
+
+def test_bootstrap_schedule() -> None:
+    from relocdepth.train import TrainConfig, bootstrap_at
+
+    cfg = TrainConfig(bootstrap="posenet", bootstrap_steps=10, bootstrap_fade_steps=4, w_bootstrap=2.0)
+    got = [bootstrap_at(cfg, s) for s in (0, 9, 10, 11, 13, 14, 100)]
+    assert got == [(True, 2.0), (True, 2.0), (False, 2.0), (False, 1.5), (False, 0.5), (False, 0.0), (False, 0.0)]
+    assert bootstrap_at(TrainConfig(), 0) == (False, 0.0)
+
+
+def _log_steps(run: Path) -> list[dict]:
+    return [d for d in map(json.loads, (run / "logs" / "train.jsonl").read_text().splitlines()) if "loss" in d]
+
+
+def test_trainer_hands_over_from_a_wrong_bootstrap(synth_shards: Path, tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """The research oracle fed deliberately wrong poses: the warps are bad for the bootstrap's
+    steps, and back at the DSC's (near identity at init) level once it hands over."""
+    import relocdepth.train as train_mod
+
+    real = train_mod.research_gt_poses
+
+    def wrong_poses(shards, frames):
+        T = real(shards, frames)  # refuses data without poses; the values are then replaced
+        return _random_poses(len(T), seed=5, rot_deg=25.0, trans=0.6).numpy().astype(np.float32)
+
+    monkeypatch.setattr(train_mod, "research_gt_poses", wrong_poses)
+    cfg = train_mod.TrainConfig(size=(128, 96), batch_size=2, pretrained=None, workers=0, progress=False,
+                                log_every=1, max_steps=4, bootstrap="oracle-gt", bootstrap_steps=2,
+                                bootstrap_fade_steps=1, photometric_pixels="all")
+    train_mod.train(synth_shards, tmp_path / "run", cfg)
+    steps = _log_steps(tmp_path / "run")
+    assert [d["step"] for d in steps] == [1, 2, 3, 4]
+    for d in steps[:2]:  # the wrong poses drive the warps: large motion, mostly off-image
+        diag = d["diagnostics"]
+        assert diag["boot_warps"] == 1.0 and diag["rel_trans"] == pytest.approx(diag["boot_rel_trans"])
+        assert diag["rel_trans"] > 0.2 and diag["valid_frac"] < 0.8
+    assert steps[2]["diagnostics"]["boot_warps"] == 0.0 and "L_boot" in steps[2]["parts"]  # fading
+    assert "L_boot" not in steps[3]["parts"]  # the paper's loss alone
+    for d in steps[2:]:  # the DSC's poses (near identity at init) drive them again
+        assert d["diagnostics"]["rel_trans"] < 0.05 and d["diagnostics"]["valid_frac"] > 0.9
+
+
+def test_posenet_bootstrap_trains_and_checkpoint_localizes(synth_shards: Path, tmp_path: Path) -> None:
+    from relocdepth.checkpoint import load_for_inference
+    from relocdepth.train import TrainConfig, train
+
+    cfg = TrainConfig(size=(128, 96), batch_size=2, pretrained=None, workers=0, progress=False, log_every=1,
+                      max_steps=3, bootstrap="posenet", bootstrap_steps=2, bootstrap_fade_steps=1)
+    summary = train(synth_shards, tmp_path / "run", cfg)
+    assert summary["steps"] == 3
+    steps = _log_steps(tmp_path / "run")
+    assert [d["diagnostics"].get("boot_warps") for d in steps] == [1.0, 1.0, 0.0]
+    nets, _ = load_for_inference(tmp_path / "run")
+    assert hasattr(nets, "relpose")
+
+
+def test_max_minutes_stops_on_wall_clock(synth_shards: Path, tmp_path: Path) -> None:
+    from relocdepth.train import TrainConfig, train
+
+    cfg = TrainConfig(size=(128, 96), batch_size=1, pretrained=None, workers=0, progress=False,
+                      max_minutes=1e-4, checkpoint_every=1000)
+    summary = train(synth_shards, tmp_path / "run", cfg)
+    assert summary["stop"] == "max_minutes" and summary["steps"] == 1
+    assert summary["checkpoint"] is not None  # the final checkpoint
+
+
+def test_cli_refuses_oracle_without_ground_truth_and_bad_values(synth_scene: Path, tmp_path: Path) -> None:
+    from relocdepth.cli.main import app
+
+    runner = CliRunner()
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for p in sorted((synth_scene / "seq-01").glob("*.color.png"))[:8]:
+        (frames / p.name).write_bytes(p.read_bytes())
+    (tmp_path / "k.yaml").write_text((synth_scene / "intrinsics.yaml").read_text())
+    r = runner.invoke(app, ["ingest", str(frames), "--K", str(tmp_path / "k.yaml"), "-o", str(tmp_path / "shards")])
+    assert r.exit_code == 0, r.output
+    common = ["--size", "128x96", "--pretrained", "none", "--workers", "0", "--no-progress", "--max-steps", "1"]
+    r = runner.invoke(app, ["train", str(tmp_path / "shards"), "-o", str(tmp_path / "run"), *common,
+                            "--bootstrap", "oracle-gt", "--bootstrap-steps", "5"])
+    assert r.exit_code == 2 and "ground-truth poses" in r.output
+    assert not (tmp_path / "run").exists()
+    for bad in (["--bootstrap", "magic", "--bootstrap-steps", "5"], ["--bootstrap", "posenet"],
+                ["--max-minutes", "0"]):
+        r = runner.invoke(app, ["train", str(tmp_path / "shards"), "-o", str(tmp_path / "run2"), *common, *bad])
+        assert r.exit_code == 2 and "error" in r.output.lower(), (bad, r.output)
