@@ -14,18 +14,22 @@ from relocdepth.cli.main import app
 @user_errors
 def demo(
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (scene/, shards/, run/, eval/); an earlier demo there is replaced.")] = Path("demo"),
-    minutes: Annotated[float, typer.Option("--minutes", help="Training budget in minutes (the whole demo takes about one more).")] = 8.0,
+    minutes: Annotated[float, typer.Option("--minutes", help="Training budget in minutes, wall clock (rendering, ingest and evaluation add about one more).")] = 8.0,
     seed: Annotated[int, typer.Option(help="Seed of the generated scene and of training.")] = 0,
     pretrained: Annotated[str | None, typer.Option("--pretrained", metavar="imagenet|FILE|none", help="Encoder initialisation: ImageNet weights (downloaded if possible), a torchvision resnet18 .pth, or none.")] = "imagenet",
 ) -> None:
     """Run the whole pipeline on a generated scene and print the evaluation table."""
-    from relocdepth.demo import DemoConfig, run_demo
+    from relocdepth.demo import DemoConfig, beaten_references, run_demo
     from relocdepth.report import format_table
 
     init = None if pretrained in (None, "", "none") else pretrained
     result = run_demo(out, DemoConfig(minutes=minutes, seed=seed, pretrained=init))
     t = result["timings"]
     typer.echo(format_table(result["report"]))
+    beats, misses = beaten_references(result["report"])
+    typer.echo("\nbeats: " + ("; ".join(beats) if beats else "none of the references yet"))
+    if misses:
+        typer.echo("not yet: " + "; ".join(misses))
     typer.echo(
         f"\ndemo done in {t['total_s'] / 60:.1f} min (train {t['train_s'] / 60:.1f} min, "
         f"{result['train']['steps']} steps). Localize with:\n"

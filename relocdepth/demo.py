@@ -4,8 +4,8 @@ Stages (each a library call, each output a folder under ``out``):
 ``scene/`` (synth, 7-Scenes layout) -> ``shards/`` (ingest) -> ``run/`` (train for a time
 budget) -> ``eval/`` (the paper's protocol: report.json, TUM trajectories, plots).
 
-The trainer counts steps, not seconds, so the budget is met in two legs of one run: a few
-steps to measure the step time, then a resume with as many steps as the remaining time allows.
+The training budget is wall-clock time, kept by the trainer itself (``TrainConfig.max_minutes``),
+so a machine that gets faster or slower while it trains still uses the whole budget.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from relocdepth.errors import UserError
@@ -41,7 +41,11 @@ class DemoConfig:
     photometric_pixels: str = "all"
     lr: float = 3e-4  # the measured CPU recipe's rate (paper: 1e-4)
     pretrained: str | None = "imagenet"  # ImageNet encoder if downloadable, else random init
-    calibration_steps: int = 6  # first leg: steps to measure the step time
+    # The relative-pose bootstrap (README, Training): a two-frame pose network drives the warps for
+    # the first steps so that depth learns before the DSC network knows where it is.
+    bootstrap: str = "posenet"
+    bootstrap_steps: int = 200
+    bootstrap_fade_steps: int = 100
     workers: int = 1  # DataLoader workers (a 2-core machine)
     eval_batch_size: int = 16
 
@@ -63,42 +67,18 @@ def _prepare(out: Path) -> None:
     (out / MARKER).write_text(json.dumps({"status": "running"}) + "\n")
 
 
-def _step_seconds(run: Path) -> tuple[float, float]:
-    """(seconds per step, start-up seconds before the first step) from the run's train log."""
-    start, steps = None, []
-    for line in (run / "logs" / "train.jsonl").read_text().splitlines():
-        rec = json.loads(line)
-        if rec.get("kind") == "event" and rec.get("event") in ("start", "resume"):
-            start, steps = rec["time"], []
-        elif rec.get("kind") == "step":
-            steps.append((rec["step"], rec["time"]))
-    if start is None or len(steps) < 3:
-        raise RuntimeError(f"{run}: too few step records to time the training")
-    (s0, t0), (s1, t1) = steps[1], steps[-1]  # from the 2nd step: the 1st includes warm-up
-    per_step = (t1 - t0) / (s1 - s0)
-    return per_step, max(steps[0][1] - start - per_step, 0.0)
-
-
-def _train(shards: Path, run: Path, cfg: DemoConfig, deadline: float) -> dict:
-    """Train until ``deadline`` (a time.perf_counter() value): time a few steps, then resume
-    with as many steps as the remaining time allows."""
+def _train(shards: Path, run: Path, cfg: DemoConfig) -> dict:
+    """Train for ``cfg.minutes`` of wall-clock time (the trainer stops itself and checkpoints)."""
     from relocdepth.train import TrainConfig, train
 
     tcfg = TrainConfig(
         size=cfg.size, batch_size=cfg.batch_size, window=cfg.window, pretrained=cfg.pretrained,
-        photometric_pixels=cfg.photometric_pixels, lr=cfg.lr,
-        seed=cfg.seed, workers=cfg.workers, max_steps=cfg.calibration_steps, log_every=1,
-        checkpoint_every=200, progress=False,
+        photometric_pixels=cfg.photometric_pixels, lr=cfg.lr, bootstrap=cfg.bootstrap,
+        bootstrap_steps=cfg.bootstrap_steps, bootstrap_fade_steps=cfg.bootstrap_fade_steps,
+        seed=cfg.seed, workers=cfg.workers, max_minutes=cfg.minutes, log_every=10,
+        checkpoint_every=200, progress=True,
     )
-    first = train(shards, run, tcfg)
-    step_s, startup_s = _step_seconds(run)
-    left = deadline - time.perf_counter() - startup_s
-    more = int(left / step_s)
-    log.info("demo: %.2f s per step; %d more steps fit in the remaining %.0f s", step_s, more, left)
-    if more <= 0:
-        return first
-    return train(shards, run, replace(tcfg, max_steps=first["steps"] + more, resume=True,
-                                      log_every=10, progress=True))
+    return train(shards, run, tcfg)
 
 
 def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig()) -> dict:
@@ -126,7 +106,7 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig()) -> dict:
     timings["ingest_s"] = time.perf_counter() - t
     t = time.perf_counter()
     log.info("demo 3/4: training for %.1f minutes at %dx%d", cfg.minutes, w, h)
-    summary = _train(out / "shards", out / "run", cfg, t + 60.0 * cfg.minutes)
+    summary = _train(out / "shards", out / "run", cfg)
     timings["train_s"] = time.perf_counter() - t
     t = time.perf_counter()
     log.info("demo 4/4: evaluating (the paper's protocol)")
@@ -141,6 +121,31 @@ def run_demo(out: str | Path, cfg: DemoConfig = DemoConfig()) -> dict:
                         "run": str(out / "run"), **report["outputs"]}}
     (out / MARKER).write_text(json.dumps({"status": "done"} | result, indent=2) + "\n")
     return result | {"report": report}
+
+
+def beaten_references(report: dict) -> tuple[list[str], list[str]]:
+    """Which of the evaluation's references the model beats, and which it does not: constant depth
+    (AbsRel), identity relative pose (translation and rotation between test frames k apart), the
+    mean training pose and thumbnail retrieval (median translation and rotation)."""
+    test, rel, base = report["pose"]["test"], report["pose"]["relative"], report["baselines"]
+    depth = report.get("depth") or {}
+    pred, const = depth.get("prediction") or {}, depth.get("constant_reference") or {}
+    checks = []
+    if pred.get("abs_rel") is not None and const.get("abs_rel") is not None:
+        checks.append((f"constant depth (AbsRel {pred['abs_rel']:.3f} vs {const['abs_rel']:.3f})",
+                       pred["abs_rel"] < const["abs_rel"]))
+    if rel.get("median_t_m") is not None:
+        checks.append(((f"identity relative pose, frames {rel['k']} apart ({rel['median_t_m']:.4f} m / "
+                       f"{rel['median_r_deg']:.2f} deg vs {rel['identity_median_t_m']:.4f} m / "
+                       f"{rel['identity_median_r_deg']:.2f} deg)"),
+                       rel["median_t_m"] < rel["identity_median_t_m"]
+                       and rel["median_r_deg"] < rel["identity_median_r_deg"]))
+    for key, name in (("mean_pose", "mean training pose"), ("retrieval", "thumbnail retrieval")):
+        b = base[key]
+        checks.append(((f"{name} ({test['median_t_m']:.3f} m / {test['median_r_deg']:.1f} deg vs "
+                       f"{b['median_t_m']:.3f} m / {b['median_r_deg']:.1f} deg)"),
+                       test["median_t_m"] < b["median_t_m"] and test["median_r_deg"] < b["median_r_deg"]))
+    return [n for n, ok in checks if ok], [n for n, ok in checks if not ok]
 
 
 def _jsonable(d: dict) -> dict:

@@ -95,7 +95,7 @@ def test_warps_switch_between_bootstrap_and_dsc_poses() -> None:
     cfg = MethodConfig(photometric_pixels="all")
     wrong = _random_poses(6, seed=4, rot_deg=30.0, trans=0.5).float().reshape(2, 3, 4, 4)
     paper, p_parts, _ = triplet_loss(nets, imgs, imgs, K, cfg)
-    driven, d_parts, d_diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(True, 1.0, wrong))
+    _driven, d_parts, d_diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(True, 1.0, wrong))
     fading, f_parts, f_diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.5, wrong))
     assert d_diag["boot_warps"] == 1.0 and f_diag["boot_warps"] == 0.0
     assert float(d_parts["L_p"]) != pytest.approx(float(p_parts["L_p"]), rel=1e-3)  # other warps
