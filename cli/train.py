@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from relocdepth.cli.common import parse_size, user_errors
@@ -29,11 +29,38 @@ def _pixels(text: str) -> str:
     return text
 
 
+# Options that are not TrainConfig fields, and those whose field has another name or type.
+_NOT_FIELDS = ("ctx", "shards", "out", "recipe", "config")
+_CONVERT = {
+    "size": ("size", parse_size),
+    "window_schedule": ("window_schedule", _schedule),
+    "photometric_pixels": ("photometric_pixels", _pixels),
+    "no_lcvs": ("lcvs", lambda v: not v),
+    "no_dsc": ("use_dsc", lambda v: not v),
+    "pretrained": ("pretrained", lambda v: None if v is None or v.lower() == "none" else v),
+}
+
+
+def _given_fields(ctx: typer.Context, values: dict[str, Any]) -> dict[str, Any]:
+    """TrainConfig fields of the options given on the command line (not left at their default)."""
+    out = {}
+    for name, value in values.items():
+        source = ctx.get_parameter_source(name)  # a ParameterSource (click's, or typer's vendored one)
+        if name in _NOT_FIELDS or source is None or source.name == "DEFAULT":
+            continue
+        field, convert = _CONVERT.get(name, (name, lambda v: v))
+        out[field] = convert(value)
+    return out
+
+
 @app.command()
 @user_errors
 def train(
+    ctx: typer.Context,
     shards: Annotated[str, typer.Argument(help="Dataset folder written by `reloc ingest` (trains on its train split), or its URL (http(s)://, file://, s3:// ...: fetched once into ~/.cache/relocdepth).")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Run folder: config.json, logs/, checkpoints/.")] = Path("runs/default"),
+    recipe: Annotated[str, typer.Option(help="Named recipe: paper (the defaults), paper-bootstrap, cpu, cpu-bootstrap, demo (README, Training). Options given here override it.")] = "paper",
+    config: Annotated[Path | None, typer.Option("--config", help="YAML/JSON file of training options, or a run's config.json (repeats that run). Applied over --recipe; options given here override it.")] = None,
     epochs: Annotated[int, typer.Option(help="Epochs; one epoch = every training frame once as a target (paper: 300).")] = 300,
     batch_size: Annotated[int, typer.Option("--batch-size", help="Triplets per step and per process (paper: 6).")] = 6,
     size: Annotated[str, typer.Option(help="Network input WxH, multiples of 32 (paper: 640x480).")] = "640x480",
@@ -68,22 +95,21 @@ def train(
     keep_last: Annotated[int, typer.Option("--keep-last", help="Checkpoints to keep (older are deleted).")] = 3,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Show a progress bar.")] = True,
 ) -> None:
-    """Train depth + DSC networks on SHARDS (paper recipe by default); checkpoints go to -o."""
+    """Train depth + DSC networks on SHARDS (the paper's recipe by default); checkpoints go to -o.
+
+    Settings are layered: the paper's defaults < --recipe < --config < options given here.
+    """
+    given = _given_fields(ctx, dict(locals()))
+    from relocdepth.recipes import read_config_file
+    from relocdepth.recipes import recipe as recipe_fields
     from relocdepth.train import TrainConfig
     from relocdepth.train import train as run_training
 
-    cfg = TrainConfig(
-        size=parse_size(size), epochs=epochs, batch_size=batch_size, lr=lr, window=window,
-        window_seconds=window_seconds, window_schedule=_schedule(window_schedule), global_epochs=global_epochs,
-        global_prob=global_prob, scale_max=scale_max, jitter_per_image=jitter_per_image,
-        lcvs=not no_lcvs, photometric_pixels=_pixels(photometric_pixels),
-        recompute_warps=recompute_warps, use_dsc=not no_dsc, bootstrap=bootstrap, bootstrap_steps=bootstrap_steps,
-        bootstrap_fade_steps=bootstrap_fade_steps, w_bootstrap=w_bootstrap, max_minutes=max_minutes,
-        pretrained=None if pretrained.lower() == "none" else pretrained, seed=seed, workers=workers,
-        device=device, amp=amp, amp_dtype=amp_dtype, channels_last=channels_last, max_steps=max_steps,
-        log_every=log_every, checkpoint_every=checkpoint_every, keep_last=keep_last, progress=progress,
-        resume=resume,
-    )
+    fields = recipe_fields(recipe)
+    if config is not None:
+        fields.update(read_config_file(config))
+    fields.update(given)
+    cfg = TrainConfig(**fields)
     summary = run_training(shards, out, cfg)
     if summary["rank"] == 0:
         typer.echo(

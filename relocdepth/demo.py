@@ -34,18 +34,10 @@ class DemoConfig:
     sequences: int = 3  # 2 train + 1 test, like a small 7-Scenes scene
     frames: int = 150  # per sequence: 5 s at 30 fps
     size: tuple[int, int] = (128, 96)  # rendered and trained at this size (W, H)
+    # The training recipe (relocdepth.recipes): the CPU recipe with the relative-pose bootstrap.
+    recipe: str = "demo"
     batch_size: int = 6  # paper IV-B
-    window: int = 3  # nearby frames +-3: at this budget wider windows do not learn (issue 6)
-    # L_p over all pixels (monodepth2): at 650 steps it halved the relative rotation error where
-    # the in-image mask did nothing (README, Quality)
-    photometric_pixels: str = "all"
-    lr: float = 3e-4  # the measured CPU recipe's rate (paper: 1e-4)
     pretrained: str | None = "imagenet"  # ImageNet encoder if downloadable, else random init
-    # The relative-pose bootstrap (README, Training): a two-frame pose network drives the warps for
-    # the first steps so that depth learns before the DSC network knows where it is.
-    bootstrap: str = "posenet"
-    bootstrap_steps: int = 200
-    bootstrap_fade_steps: int = 100
     workers: int = 1  # DataLoader workers (a 2-core machine)
     eval_batch_size: int = 16
 
@@ -69,15 +61,14 @@ def _prepare(out: Path) -> None:
 
 def _train(shards: Path, run: Path, cfg: DemoConfig) -> dict:
     """Train for ``cfg.minutes`` of wall-clock time (the trainer stops itself and checkpoints)."""
+    from relocdepth.recipes import recipe
     from relocdepth.train import TrainConfig, train
 
-    tcfg = TrainConfig(
-        size=cfg.size, batch_size=cfg.batch_size, window=cfg.window, pretrained=cfg.pretrained,
-        photometric_pixels=cfg.photometric_pixels, lr=cfg.lr, bootstrap=cfg.bootstrap,
-        bootstrap_steps=cfg.bootstrap_steps, bootstrap_fade_steps=cfg.bootstrap_fade_steps,
-        seed=cfg.seed, workers=cfg.workers, max_minutes=cfg.minutes, log_every=10,
-        checkpoint_every=200, progress=True,
-    )
+    tcfg = TrainConfig(**{
+        **recipe(cfg.recipe), "size": cfg.size, "batch_size": cfg.batch_size, "pretrained": cfg.pretrained,
+        "seed": cfg.seed, "workers": cfg.workers, "max_minutes": cfg.minutes, "log_every": 10,
+        "checkpoint_every": 200, "progress": True,
+    })
     return train(shards, run, tcfg)
 
 

@@ -191,3 +191,45 @@ def test_cli_refuses_oracle_without_ground_truth_and_bad_values(synth_scene: Pat
                 ["--max-minutes", "0"]):
         r = runner.invoke(app, ["train", str(tmp_path / "shards"), "-o", str(tmp_path / "run2"), *common, *bad])
         assert r.exit_code == 2 and "error" in r.output.lower(), (bad, r.output)
+
+
+def test_recipes_config_files_and_explicit_options_layer(synth_shards: Path, tmp_path: Path) -> None:
+    """defaults < --recipe < --config < options given on the command line; a run's config.json
+    repeats that run."""
+    from relocdepth.cli.main import app
+    from relocdepth.recipes import RECIPES
+
+    runner = CliRunner()
+    common = ["--pretrained", "none", "--workers", "0", "--no-progress", "--max-steps", "1", "--batch-size", "1"]
+
+    def trained(run: str) -> dict:
+        return json.loads((tmp_path / run / "config.json").read_text())["train"]
+
+    r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "a"), "--recipe", "cpu-bootstrap",
+                            "--window", "5", *common])
+    assert r.exit_code == 0, r.output
+    a = trained("a")
+    assert a["lr"] == 3e-4 and a["photometric_pixels"] == "all" and a["bootstrap"] == "posenet"
+    assert a["size"] == [128, 96] and a["bootstrap_steps"] == RECIPES["cpu-bootstrap"]["bootstrap_steps"]
+    assert a["window"] == 5  # given here: overrides the recipe's 3
+    # The run's own config.json repeats it (same training fields), with options still on top.
+    r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "b"), "--config",
+                            str(tmp_path / "a" / "config.json"), "--seed", "3"])
+    assert r.exit_code == 0, r.output
+    b = trained("b")
+    assert {k: v for k, v in b.items() if k != "seed"} == {k: v for k, v in a.items() if k != "seed"}
+    assert b["seed"] == 3
+    # A YAML file over a recipe.
+    (tmp_path / "c.yaml").write_text("lr: 0.002\nwindow: 7\n")
+    r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "c"), "--recipe", "cpu",
+                            "--config", str(tmp_path / "c.yaml"), *common])
+    assert r.exit_code == 0, r.output
+    c = trained("c")
+    assert (c["lr"], c["window"], c["photometric_pixels"], c["bootstrap"]) == (0.002, 7, "all", "off")
+    # Bad input: one line, exit 2, nothing written.
+    (tmp_path / "bad.yaml").write_text("learning_rate: 1\n")
+    for bad in (["--recipe", "fast"], ["--config", str(tmp_path / "bad.yaml")],
+                ["--config", str(tmp_path / "missing.yaml")]):
+        r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "d"), *common, *bad])
+        assert r.exit_code == 2 and "error" in r.output, (bad, r.output)
+        assert not (tmp_path / "d").exists()

@@ -60,11 +60,10 @@ CPU = ["--window", "3", "--scale-max", "1.1", "--lr", "3e-4"]
 # growing 3 -> 10 -> 20 frames (trial 4: a +-3 window leaves ~1 px of parallax at 128x96).
 CPU_ALL = CPU + ["--photometric-pixels", "all"]
 CPU_SCHEDULE = CPU_ALL + ["--window-schedule", "0:3,8:10,16:20"]
-# The relative-pose bootstrap. `oracle-gt`: ground-truth poses drive the warps throughout (a
-# research ceiling for depth: what it learns when the poses are right). `posenet`: the two-frame
-# pose network drives them for 400 steps, then the DSC (the paper's loss) with the consistency
-# term fading over 200. `posenet-w10`: the same on a +-10 window.
-BOOT = ["--bootstrap", "posenet", "--bootstrap-steps", "400", "--bootstrap-fade-steps", "200"]
+# Rows of the named recipes (relocdepth.recipes, the ones `reloc train --recipe` and the demo use).
+# `oracle-gt`: ground-truth poses drive the warps throughout (a research ceiling for depth: what
+# it learns when the poses are right). `cpu-bootstrap`: the two-frame pose network drives them for
+# the first steps, then the DSC (the paper's loss) with the consistency term fading out.
 RECIPES: dict[str, list[str]] = {
     "paper": PAPER,
     "cpu": CPU,
@@ -73,15 +72,16 @@ RECIPES: dict[str, list[str]] = {
     "no-lcvs": CPU + ["--no-lcvs"],
     "no-dsc": CPU + ["--no-dsc"],
     "demo": DEMO,
-    "oracle-gt": CPU_ALL + ["--bootstrap", "oracle-gt", "--bootstrap-steps", "100000000"],
-    "posenet": CPU_ALL + BOOT,
-    "posenet-w10": CPU_ALL + BOOT + ["--window", "10"],
-    "posenet-no-lcvs": CPU_ALL + BOOT + ["--no-lcvs"],
-    "posenet-no-dsc": CPU_ALL + BOOT + ["--no-dsc"],
+    "oracle-gt": ["--recipe", "cpu", "--bootstrap", "oracle-gt", "--bootstrap-steps", "100000000"],
+    "cpu-bootstrap": ["--recipe", "cpu-bootstrap"],
+    "cpu-bootstrap-w10": ["--recipe", "cpu-bootstrap", "--window", "10"],
+    "cpu-bootstrap-no-lcvs": ["--recipe", "cpu-bootstrap", "--no-lcvs"],
+    "cpu-bootstrap-no-dsc": ["--recipe", "cpu-bootstrap", "--no-dsc"],
 }
 # A walk-through moves ~10 cm per frame (hololens-office), 7-Scenes ~0.7 cm: its window is in
 # frames too, so rows on it use +-2 (last option wins).
 WALK_WINDOW = ["--window", "2"]
+OWN_WINDOW = {"cpu-bootstrap-w10"}  # rows that keep their own window there
 DEFAULT_ROWS = "paper,cpu,no-lcvs,no-dsc"
 
 # "Clearly" below a reference (rungs 1 and 2): at most this fraction of it.
@@ -252,7 +252,7 @@ def table(rows: dict, ref: dict, size: str) -> str:
 
 
 def recipe_of(name: str, size: str, walk: bool) -> list[str]:
-    return ["--size", size, *COMMON, *RECIPES[name], *(WALK_WINDOW if walk and "-w" not in name else [])]
+    return ["--size", size, *COMMON, *RECIPES[name], *(WALK_WINDOW if walk and name not in OWN_WINDOW else [])]
 
 
 def run_rows(names: list[str], shards: Path, out: Path, budget_min: float, threads: int, redo: bool,

@@ -1,0 +1,76 @@
+"""Named training recipes, defined once: `reloc train --recipe NAME`, the demo and the quality rows.
+
+A recipe is a set of :class:`~relocdepth.train.TrainConfig` fields on top of the defaults (which
+are the paper's). A config file (``--config``: YAML or JSON of TrainConfig fields, or a run's own
+``config.json``) goes on top of the recipe, and options given on the command line on top of both:
+``defaults < recipe < config file < command line``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+from relocdepth.errors import UserError
+
+# The measured CPU recipe (README, Quality): +-3 frames, lr 3e-4, L_p over all pixels (the
+# in-image mask can be gamed by warping off-image), at 128x96.
+_CPU: dict[str, Any] = {"size": (128, 96), "window": 3, "lr": 3e-4, "photometric_pixels": "all"}
+# The relative-pose bootstrap (README, Training): a two-frame pose network drives the warps for
+# the first steps, so that depth learns before the DSC network knows where it is.
+_BOOTSTRAP: dict[str, Any] = {"bootstrap": "posenet", "bootstrap_steps": 400, "bootstrap_fade_steps": 200}
+
+RECIPES: dict[str, dict[str, Any]] = {
+    # The paper's recipe (Sec. IV-B): TrainConfig's defaults, 640x480, +-20 frames, lr 1e-4.
+    "paper": {},
+    # The paper's recipe with the relative-pose bootstrap.
+    "paper-bootstrap": {**_BOOTSTRAP, "bootstrap_steps": 2000, "bootstrap_fade_steps": 1000},
+    # CPU-sized recipes (random init, minutes to hours on 2 cores).
+    "cpu": dict(_CPU),
+    "cpu-bootstrap": {**_CPU, **_BOOTSTRAP},
+    # What `reloc demo` trains: cpu-bootstrap with a shorter bootstrap for its minutes.
+    "demo": {**_CPU, **_BOOTSTRAP, "bootstrap_steps": 200, "bootstrap_fade_steps": 100},
+}
+
+
+def recipe(name: str) -> dict[str, Any]:
+    """The TrainConfig fields of recipe ``name`` (UserError naming the known ones otherwise)."""
+    if name not in RECIPES:
+        raise UserError(f"unknown recipe {name!r}; known: {', '.join(RECIPES)}")
+    return dict(RECIPES[name])
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """TrainConfig fields from a YAML/JSON file: a plain mapping of fields, or a run's
+    ``config.json`` (its ``train`` entry). Unknown fields are a UserError naming them."""
+    from relocdepth.train import TrainConfig
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise UserError(f"cannot read --config {path}: {e.strerror or e}") from None
+    import yaml
+
+    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
+    try:
+        data = json.loads(text) if kind == "JSON" else yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError) as e:
+        raise UserError(f"--config {path} is not valid {kind}: {str(e).splitlines()[0]}") from None
+    if isinstance(data, dict) and isinstance(data.get("train"), dict):
+        data = data["train"]  # a run's config.json
+    if not isinstance(data, dict):
+        raise UserError(f"--config {path} must hold a mapping of training options (or a run's config.json)")
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise UserError(f"--config {path}: unknown option(s) {', '.join(unknown)}")
+    # A repeated run starts afresh unless --resume is given on the command line.
+    data = {k: v for k, v in data.items() if k != "resume"}
+    if "size" in data:
+        data["size"] = tuple(data["size"])
+    if "window_schedule" in data:
+        data["window_schedule"] = tuple(tuple(x) for x in data["window_schedule"])
+    return data
