@@ -81,6 +81,7 @@ def train(
     window_seconds: Annotated[float | None, typer.Option("--window-seconds", help="Window in seconds from timestamps instead (30 fps: 20 frames = 0.667).")] = None,
     window_schedule: Annotated[str | None, typer.Option("--window-schedule", help="Window by epoch, e.g. 0:3,50:20 (default: --window throughout).")] = None,
     global_epochs: Annotated[int, typer.Option("--global-epochs", help="Last N epochs use global pairs (paper: 100).")] = 100,
+    min_parallax: Annotated[float | None, typer.Option("--min-parallax", metavar="PX", help="Draw nearby sources among frames whose pair parallax to the target (motion rotation cannot explain, px at --size; estimated at ingest) is >= PX, else the two with the most. Needs the dataset's pair parallax (reloc inspect SHARDS --add-parallax). Default: the paper's uniform draw.")] = None,
     global_prob: Annotated[float, typer.Option("--global-prob", help="Probability of a global pair then (paper: 0.5).")] = 0.5,
     jitter_per_image: Annotated[bool, typer.Option("--jitter-per-image", help="Independent colour jitter per image (default: one draw per triplet).")] = False,
     scale_max: Annotated[float, typer.Option("--scale-max", help="Scale augmentation upper bound (paper: 1.1; 1 = off).")] = 1.1,

@@ -17,6 +17,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from relocdepth.ingest import images, sevenscenes, video
+from relocdepth.ingest.parallax import (
+    ParallaxCollector,
+    ParallaxConfig,
+    track_image,
+    write_parallax,
+)
 from relocdepth.ingest.process import Encoding, Prepared, SequenceProcessor
 from relocdepth.ingest.source import SourcePlan, check_readable, sanitize_name
 from relocdepth.ingest.writer import (
@@ -62,6 +68,9 @@ class IngestConfig:
     png_compression: int = 1  # zlib level for written PNGs: 1 is ~3x faster than OpenCV's 3, ~10% larger
     decode_check: bool = False  # also fully decode copied images (header/end-marker checks always run)
     workers: int = 2  # threads preparing frames (OpenCV releases the GIL while coding images)
+    pair_parallax: bool = True  # estimate pair parallax (parallax.parquet); +~PCT% ingest time at 640x480
+    parallax_offsets: tuple[int, ...] = ParallaxConfig.offsets  # pairs (i, i+k) for these k
+    parallax_width: int = ParallaxConfig.track_width  # px width of the grey copies tracked
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -76,6 +85,10 @@ class IngestConfig:
             raise UserError(f"video_format must be 'png' or 'jpg', got '{self.video_format}'")
         if self.workers < 1:
             raise UserError(f"workers must be >= 1, got {self.workers}")
+        self.parallax_config()  # validates the parallax fields
+
+    def parallax_config(self) -> ParallaxConfig:
+        return ParallaxConfig(offsets=tuple(self.parallax_offsets), track_width=self.parallax_width)
 
 
 def detect_kind(path: Path) -> str:
@@ -189,12 +202,14 @@ def _write_all(plans: list[SourcePlan], tmp: Path, cfg: IngestConfig, progress: 
     skipped: list[dict] = []
     names = _unique_names(plans)
     total = sum(seq.count for plan in plans for seq in plan.sequences)
+    pcfg = cfg.parallax_config() if cfg.pair_parallax else None
     bar = _progress() if progress else None
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=cfg.workers) as pool:
         if bar is not None:
             bar.start()
         task = bar.add_task("", total=total, fps=0.0) if bar is not None else None
+        parallax = ParallaxCollector(pcfg, pool.submit) if pcfg is not None else None
         try:
             for plan, seq_names in zip(plans, names):
                 for seq, name in zip(plan.sequences, seq_names):
@@ -202,15 +217,23 @@ def _write_all(plans: list[SourcePlan], tmp: Path, cfg: IngestConfig, progress: 
                     if bar is not None:
                         bar.update(task, description=name)
                     writer.new_sequence()
+                    if parallax is not None:
+                        parallax.new_sequence(name)
                     n = 0
 
                     def prepare(frame, proc=proc, name=name) -> tuple:
-                        return frame, proc.prepare(frame, f"{name}-{frame.index:06d}")
+                        prep = proc.prepare(frame, f"{name}-{frame.index:06d}")
+                        track = None
+                        if pcfg is not None and prep.sample is not None:
+                            track = track_image(prep.sample.members[prep.meta["image"]], pcfg)
+                        return frame, prep, track
 
                     window = cfg.workers * PREFETCH_PER_WORKER
-                    for frame, prep in _ordered_map(prepare, seq.frames(), pool, window):
+                    for frame, prep, track in _ordered_map(prepare, seq.frames(), pool, window):
                         _handle_skip(frame, prep, cfg, skipped)
                         if prep.sample is not None:
+                            if parallax is not None:
+                                parallax.add(prep.meta["key"], prep.meta["frame"], track)
                             where = writer.add(prep.sample)
                             rows.append(_row(prep.meta, writer.current_name, where))
                             n += 1
@@ -220,6 +243,7 @@ def _write_all(plans: list[SourcePlan], tmp: Path, cfg: IngestConfig, progress: 
                         sequences.append({"name": name, "split": seq.split, "frames": n})
                     else:
                         log.warning("sequence %s: no frame could be ingested", name)
+            parallax_rows = parallax.rows() if parallax is not None else None
         finally:
             if bar is not None:
                 bar.stop()
@@ -228,7 +252,8 @@ def _write_all(plans: list[SourcePlan], tmp: Path, cfg: IngestConfig, progress: 
         raise UserError("no frame could be ingested (every frame was skipped; see the warnings)")
     elapsed = time.perf_counter() - t0
     log.info("ingested %d frames in %.1f s (%.1f frames/s)", len(rows), elapsed, len(rows) / elapsed)
-    return {"rows": rows, "sequences": sequences, "skipped": skipped, "shards": shards}
+    return {"rows": rows, "sequences": sequences, "skipped": skipped, "shards": shards,
+            "parallax_rows": parallax_rows}
 
 
 def _handle_skip(frame, prep: Prepared, cfg: IngestConfig, skipped: list[dict]) -> None:
@@ -257,6 +282,8 @@ def ingest(sources: list[Path], out: Path, cfg: IngestConfig = IngestConfig(), p
         result = _write_all(plans, tmp, cfg, progress)
         write_index(result["rows"], tmp / "index.parquet")
         manifest = _manifest(plans, result, cfg)
+        if result["parallax_rows"] is not None:
+            manifest["parallax"] = write_parallax(result["parallax_rows"], tmp, cfg.parallax_config())
         write_json_atomic(manifest, tmp / "manifest.json")  # last: marks the dataset complete
         publish(tmp, out, cfg.force)
     finally:

@@ -28,6 +28,8 @@ SCHEMA_VERSION = 1
 # 7-Scenes convention: depth PNGs hold uint16 millimetres, 0 = invalid.
 DEPTH_SCALE = 1000.0
 HASH_CHUNK = 1 << 22
+# Pair parallax table written at ingest (or added later); listed under "parallax" in the manifest.
+PARALLAX_FILE = "parallax.parquet"
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,16 @@ def _records_from_index(path: Path) -> list[FrameRecord]:
             pose_offset=int(cols["pose_offset"][i]), pose_size=int(cols["pose_size"][i]),
         ))
     return records
+
+
+def parallax_arrow_schema():  # built lazily: pyarrow imports slowly
+    """Columns of the pair parallax table (see schemas/parallax.schema.json)."""
+    import pyarrow as pa
+
+    return pa.schema([
+        ("key", pa.string()), ("sequence", pa.string()), ("frame", pa.int64()),
+        ("offset", pa.int32()), ("frame_b", pa.int64()), ("parallax_px", pa.float64()),
+    ])
 
 
 class ShardDataset:
@@ -240,6 +252,8 @@ def describe(ds: ShardDataset) -> dict:
         if r.sequence not in seqs:
             seqs.append(r.sequence)
     files = [Path(p) for p in ds.shard_paths()] + [Path(ds.root) / INDEX, Path(ds.root) / MANIFEST]
+    if "parallax" in m:
+        files.append(Path(ds.root) / m["parallax"]["file"])
     return {
         "name": m["name"], "root": ds.root, "created": m["created"], "tool_version": m["tool_version"],
         "sources": m["sources"], "sequences": m["sequences"], "totals": m["totals"],
@@ -297,10 +311,100 @@ def verify(ds: ShardDataset) -> int:
                 f"{s['name']} holds {n} samples (index: {per_shard.get(s['name'], 0)}), "
                 f"the manifest says {s['samples']}"
             )
+    entry = ds.manifest.get("parallax")
+    if entry is not None:
+        path = Path(ds.root) / entry["file"]
+        if not path.is_file():
+            problems.append(f"{entry['file']} (pair parallax) is missing")
+        elif _hash_file(path) != (entry["sha256"], entry["bytes"]):
+            problems.append(f"{entry['file']} (pair parallax) differs from the manifest")
     if problems:
         more = f" (+{len(problems) - 1} more problems)" if len(problems) > 1 else ""
         raise UserError(f"verify failed: {problems[0]}{more}; re-run reloc ingest --force")
     return len(ds.manifest["shards"])
+
+
+def read_parallax(ds: ShardDataset) -> dict[str, np.ndarray] | None:
+    """The pair parallax table as columns (numpy arrays), or None if the dataset has none.
+
+    Rows are forward pairs (frame ``frame`` of ``sequence``, the ``offset``-th stored frame after
+    it, ``frame_b``); ``parallax_px`` is in pixels of the stored image, NaN where tracking failed.
+    """
+    import pyarrow.parquet as pq
+
+    from relocdepth.schemas import load_schema
+
+    entry = ds.manifest.get("parallax")
+    if entry is None:
+        return None
+    path = Path(ds.root) / entry["file"]
+    try:
+        table = pq.read_table(path)
+    except (OSError, ValueError) as e:
+        raise UserError(
+            f"{path}: cannot read the pair parallax ({e}); re-create it with "
+            f"reloc inspect {ds.root} --add-parallax"
+        ) from None
+    expected = parallax_arrow_schema()
+    missing = [n for n in load_schema("parallax")["required"] if n not in table.column_names]
+    if missing or not table.select(expected.names).schema.equals(expected):
+        raise UserError(
+            f"{path}: not a pair parallax table (columns {table.column_names}); re-create it with "
+            f"reloc inspect {ds.root} --add-parallax"
+        )
+    return {n: table.column(n).to_numpy(zero_copy_only=False) for n in expected.names}
+
+
+def parallax_for_frames(root: str | Path, frames: list[tuple[str, str, int]],
+                        offsets: tuple[int, ...] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pair parallax of a list of frames, e.g. the training frames, for the triplet sampler.
+
+    Args:
+        frames: ``(key, sequence, frame)`` per frame, sequence-contiguous in stored order.
+    Returns:
+        ``offsets (M,)`` and ``px (N, M)``: ``px[i, j]`` is the parallax (stored px) between frame
+        i and the frame ``offsets[j]`` places after it in the list, NaN where unknown (tracking
+        failed, past the sequence end, or the list's neighbour is not the stored one).
+    Raises:
+        UserError: the dataset has no pair parallax (saying how to add it).
+    """
+    ds = open_dataset(root)
+    table = read_parallax(ds)
+    ds.close()
+    if table is None:
+        raise UserError(
+            f"{root} has no pair parallax data; add it with `reloc inspect {root} --add-parallax` "
+            "(or ingest with --pair-parallax)"
+        )
+    offs = np.array(sorted(set(table["offset"].tolist())) if offsets is None else offsets, np.int64)
+    col = {int(k): j for j, k in enumerate(offs)}
+    where = {key: i for i, (key, _, _) in enumerate(frames)}
+    px = np.full((len(frames), len(offs)), np.nan)
+    for key, k, fb, val in zip(table["key"], table["offset"], table["frame_b"], table["parallax_px"]):
+        i, j = where.get(key), col.get(int(k))
+        if i is None or j is None or i + k >= len(frames):
+            continue
+        _, seq_b, frame_b = frames[i + k]
+        if seq_b == frames[i][1] and frame_b == fb:
+            px[i, j] = val
+    return offs, px
+
+
+def parallax_summary(ds: ShardDataset) -> list[dict] | None:
+    """Per offset: pairs, failed, median and 90th percentile (stored px); None without a table."""
+    table = read_parallax(ds)
+    if table is None:
+        return None
+    out = []
+    for k in sorted(set(table["offset"].tolist())):
+        vals = table["parallax_px"][table["offset"] == k]
+        ok = vals[np.isfinite(vals)]
+        out.append({
+            "offset": int(k), "pairs": len(vals), "failed": int(len(vals) - len(ok)),
+            "median_px": float(np.median(ok)) if len(ok) else float("nan"),
+            "p90_px": float(np.percentile(ok, 90)) if len(ok) else float("nan"),
+        })
+    return out
 
 
 def open_dataset(path: str | Path) -> ShardDataset:

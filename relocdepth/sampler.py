@@ -11,6 +11,14 @@ Everything is a pure function of (seed, epoch, position in the epoch's permutati
 positions ``rank, rank + world_size, ...``, so the stream is deterministic given
 (seed, epoch, rank, world_size), and the sampler's whole state is ``(epoch, position)``.
 Each triplet also carries its own augmentation seed, so decoding/augmenting is deterministic too.
+
+With ``min_parallax`` (pixels at the training size), nearby sources are drawn only among the
+window's frames whose pair parallax to the target (image motion that rotation cannot explain,
+estimated at ingest: see ``relocdepth.ingest.parallax``) is at least that; when fewer than two
+qualify, the two with the largest parallax are used. Parallax between stored offsets is
+interpolated linearly; beyond the largest stored offset, or when the upper offset is unknown, the
+lower one's value is used (an underestimate: parallax grows with the gap). Forward pairs serve
+both directions. Global pairs are unaffected. Default None: the paper's uniform draw.
 """
 
 from __future__ import annotations
@@ -42,6 +50,8 @@ class SamplerConfig:
     seed: int = 0
     # Issue 6 hook: ((from_epoch, window), ...) overrides `window` from each epoch on; () = constant.
     window_schedule: tuple[tuple[int, int], ...] = ()
+    # Sources need this much pair parallax (px at the training size) to the target; None: paper.
+    min_parallax: float | None = None
 
     def __post_init__(self) -> None:
         if self.window < 1:
@@ -54,6 +64,8 @@ class SamplerConfig:
             raise UserError(f"--global-epochs must be >= 0, not {self.global_epochs}")
         if not 0.0 <= self.global_prob <= 1.0:
             raise UserError(f"--global-prob must be in [0, 1], not {self.global_prob}")
+        if self.min_parallax is not None and not (self.min_parallax >= 0 and np.isfinite(self.min_parallax)):
+            raise UserError(f"--min-parallax must be a number of pixels >= 0, not {self.min_parallax}")
         for e, w in self.window_schedule:
             if e < 0 or w < 1:
                 raise UserError(f"window schedule entry ({e}, {w}) needs epoch >= 0 and window >= 1")
@@ -92,6 +104,29 @@ class Triplet(NamedTuple):
     position: int
 
 
+class PairParallax(NamedTuple):
+    """Pair parallax of the sampler's frames: ``px[i, j]`` between frame i and the frame
+    ``offsets[j]`` places after it in the list (pixels at the training size; NaN: unknown)."""
+
+    offsets: np.ndarray  # (M,) increasing positive ints
+    px: np.ndarray  # (N, M)
+
+    def between(self, first: np.ndarray, gap: np.ndarray) -> np.ndarray:
+        """Parallax between frames ``first`` and ``first + gap`` (arrays, gap >= 1)."""
+        offs = self.offsets
+        j = np.searchsorted(offs, gap, side="left")  # first stored offset >= gap
+        exact = (j < len(offs)) & (offs[np.minimum(j, len(offs) - 1)] == gap)
+        lo_j = np.clip(j - 1, 0, len(offs) - 1)
+        hi_j = np.minimum(j, len(offs) - 1)
+        lo, hi = self.px[first, lo_j], self.px[first, hi_j]
+        span = np.maximum(offs[hi_j] - offs[lo_j], 1)
+        w = np.clip((gap - offs[lo_j]) / span, 0.0, 1.0)
+        interp = np.where(np.isfinite(hi), lo + w * (hi - lo), lo)
+        below = j == 0  # gap below the smallest stored offset: scale it down linearly
+        interp = np.where(below, self.px[first, 0] * gap / offs[0], interp)
+        return np.where(exact, self.px[first, hi_j], interp)
+
+
 def _rng(seed: int, *stream: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, *stream]))
 
@@ -100,11 +135,17 @@ class TripletSampler:
     """Deterministic triplet stream over ``frames`` (training frames, sequence-contiguous, in order)."""
 
     def __init__(self, frames: Sequence[FrameKey], cfg: SamplerConfig = SamplerConfig(),
-                 rank: int = 0, world_size: int = 1) -> None:
+                 rank: int = 0, world_size: int = 1, parallax: PairParallax | None = None) -> None:
         if not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} outside world size {world_size}")
         self.frames = list(frames)
         self.cfg = cfg
+        if cfg.min_parallax is not None:
+            if parallax is None:
+                raise UserError("--min-parallax needs pair parallax data; add it with reloc inspect --add-parallax")
+            if parallax.px.shape != (len(self.frames), len(parallax.offsets)):
+                raise ValueError(f"parallax table {parallax.px.shape} does not match {len(self.frames)} frames")
+        self.parallax = parallax
         self.rank, self.world_size = rank, world_size
         if len(self.frames) < 3:
             raise UserError(f"training needs at least 3 training frames, the dataset has {len(self.frames)}")
@@ -185,11 +226,36 @@ class TripletSampler:
         else:
             lo_arr, hi_arr = self.neighbour_range(epoch)
             lo, hi = int(lo_arr[t]), int(hi_arr[t])
-        # Two distinct draws from [lo, hi) minus t: draw offsets in a range one shorter, skip t.
-        a, b = (int(x) + lo for x in rng.choice(hi - lo - 1, size=2, replace=False))
-        a, b = (a + 1 if a >= t else a), (b + 1 if b >= t else b)
+        if self.cfg.min_parallax is not None and not is_global:
+            a, b = self._parallax_sources(t, lo, hi, rng)
+        else:
+            # Two distinct draws from [lo, hi) minus t: draw offsets in a range one shorter, skip t.
+            a, b = (int(x) + lo for x in rng.choice(hi - lo - 1, size=2, replace=False))
+            a, b = (a + 1 if a >= t else a), (b + 1 if b >= t else b)
         aug_seed = int(_rng(self.cfg.seed, _AUG, epoch, gpos).integers(0, 2**31 - 1))
         return Triplet(a, t, b, aug_seed, bool(is_global), epoch, position)
+
+    def source_parallax(self, t: int, sources: np.ndarray) -> np.ndarray:
+        """Pair parallax (px at the training size) between target ``t`` and same-sequence
+        ``sources`` (list indices, != t); NaN where unknown."""
+        assert self.parallax is not None
+        sources = np.asarray(sources, dtype=np.int64)
+        return self.parallax.between(np.minimum(sources, t), np.abs(sources - t))
+
+    def _parallax_sources(self, t: int, lo: int, hi: int, rng: np.random.Generator) -> tuple[int, int]:
+        cand = np.delete(np.arange(lo, hi), t - lo)
+        px = self.source_parallax(t, cand)
+        ok = px >= self.cfg.min_parallax  # NaN compares False: unknown never qualifies
+        if ok.sum() >= 2:
+            a, b = rng.choice(cand[ok], size=2, replace=False)
+            return int(a), int(b)
+        if not np.isfinite(px).any():  # nothing known about this window: the paper's draw
+            a, b = rng.choice(cand, size=2, replace=False)
+            return int(a), int(b)
+        # Fewer than two qualify: the two largest (NaN last; ties to the nearer frame, then earlier).
+        key = np.where(np.isfinite(px), -px, np.inf)
+        order = np.lexsort((cand, np.abs(cand - t), key))
+        return int(cand[order[0]]), int(cand[order[1]])
 
     def iter_epoch(self, epoch: int, start: int = 0) -> Iterator[Triplet]:
         """This rank's triplets of ``epoch`` from ``position = start`` on."""

@@ -35,7 +35,7 @@ from relocdepth.distributed import (
     shutdown_distributed,
 )
 from relocdepth.errors import UserError
-from relocdepth.sampler import SamplerConfig, TripletSampler
+from relocdepth.sampler import PairParallax, SamplerConfig, TripletSampler
 from relocdepth.trainlog import TrainLog
 
 log = logging.getLogger(__name__)
@@ -58,6 +58,7 @@ class TrainConfig:
     global_epochs: int = 100  # paper IV-B: global pairs in the latter 100 epochs
     global_prob: float = 0.5  # paper IV-B: ... for 50 %
     window_schedule: tuple[tuple[int, int], ...] = ()  # issue 6 hook: ((epoch, window), ...)
+    min_parallax: float | None = None  # sources need this pair parallax (px at `size`); None: paper
     scale_min: float = 1.0  # paper IV-B: scale 1.0-1.1 and crop back
     scale_max: float = 1.1
     brightness: float = 0.2  # paper IV-B: colour jitter +-0.2 / 0.2 / 0.2 / 0.1
@@ -122,7 +123,7 @@ class TrainConfig:
 
     def sampler_config(self) -> SamplerConfig:
         return SamplerConfig(self.window, self.window_seconds, self.epochs, self.global_epochs,
-                             self.global_prob, self.seed, self.window_schedule)
+                             self.global_prob, self.seed, self.window_schedule, self.min_parallax)
 
     def augment_config(self) -> AugmentConfig:
         return AugmentConfig(self.size[0], self.size[1], self.scale_min, self.scale_max, self.brightness,
@@ -285,11 +286,12 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
         log.warning("RESEARCH ORACLE: the warps of the first %d steps use ground-truth poses", cfg.bootstrap_steps)
     if ck is not None:
         ckpt_io.check_same_dataset(ck["meta"], frames.manifest_hash, ck_path)  # type: ignore[arg-type]
+    parallax = _pair_parallax(frames, cfg) if cfg.min_parallax is not None else None
     dist, device = init_distributed(cfg.device)
     torch.manual_seed(cfg.seed)  # same initial weights on every rank
     random.seed(cfg.seed)
     np.random.seed(cfg.seed % 2**32)
-    sampler = TripletSampler(frames.keys(), cfg.sampler_config(), dist.rank, dist.world_size)
+    sampler = TripletSampler(frames.keys(), cfg.sampler_config(), dist.rank, dist.world_size, parallax)
     data = TripletData(frames, cfg.augment_config())
     method_cfg, model_cfg = _method_and_model_configs(cfg)
     from relocdepth.models import build_networks
@@ -322,6 +324,15 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
                  method_cfg, model_cfg, tlog, gt_poses)
     return tr, state
+
+
+def _pair_parallax(frames: ImageFrames, cfg: TrainConfig) -> PairParallax:
+    """The training frames' pair parallax in pixels at the training width (UserError if absent)."""
+    from relocdepth.dataset import parallax_for_frames
+
+    offsets, px = parallax_for_frames(frames.root, [(f.key, f.sequence, f.frame) for f in frames.frames])
+    widths = np.array([f.intrinsics.width for f in frames.frames], dtype=np.float64)
+    return PairParallax(offsets, px * (cfg.size[0] / widths)[:, None])
 
 
 def _adam(nets: Any, cfg: TrainConfig) -> Any:

@@ -1,0 +1,100 @@
+"""Two-view relative pose from KLT tracks + essential matrix, on rendered frames with known poses."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from relocdepth.camera import Intrinsics
+from relocdepth.errors import UserError
+from relocdepth.geometry import relative_pose
+from relocdepth.synth import SynthConfig, build_scene, camera_paths, render
+from relocdepth.twoview import (
+    homography_residual,
+    relative_pose_essential,
+    relative_pose_images,
+    rotation_angle_deg,
+)
+
+INTR = Intrinsics(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
+
+
+def _angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    c = np.dot(u, v) / (np.linalg.norm(u) * np.linalg.norm(v))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _pair(move: np.ndarray, turn_deg: tuple[float, float, float]) -> tuple[np.ndarray, ...]:
+    """Two rendered views of the demo scene: the first pose of its first path, and that pose
+    moved by ``move`` (metres, world) and turned by the axis-angle ``turn_deg`` (camera axes)."""
+    cfg = SynthConfig(seed=0, frames=2, width=INTR.width, height=INTR.height)
+    scene = build_scene(cfg.seed, cfg)
+    T_a = camera_paths(cfg)["seq-01"][0]
+    T_b = T_a.copy()
+    T_b[:3, 3] += move
+    T_b[:3, :3] = T_a[:3, :3] @ cv2.Rodrigues(np.radians(np.asarray(turn_deg)))[0]  # camera axes
+    img_a, _ = render(scene, T_a, INTR)
+    img_b, _ = render(scene, T_b, INTR)
+    return img_a, img_b, T_a, T_b
+
+
+@pytest.mark.parametrize("move,turn", [
+    (np.array([0.10, 0.04, 0.02]), (3.0, -2.0, 1.0)),
+    (np.array([-0.06, 0.08, -0.03]), (-4.0, 1.5, -2.0)),
+    (np.array([0.0, 0.05, 0.12]), (1.0, -3.0, 2.0)),  # mostly forward
+    (np.array([0.05, 0.0, 0.0]), (2.0, 0.0, 0.0)),  # 5 cm, little parallax
+])
+def test_recovers_rendered_relative_pose(move: np.ndarray, turn: tuple[float, float, float]) -> None:
+    img_a, img_b, T_a, T_b = _pair(move, turn)
+    T_ba = relative_pose(torch.from_numpy(T_a)[None], torch.from_numpy(T_b)[None])[0].numpy()
+    assert rotation_angle_deg(T_ba[:3, :3]) > 2.0  # the pair does rotate: the test can fail
+    pose = relative_pose_images(img_a, img_b, INTR.K())
+    err_R = rotation_angle_deg(pose.R.T @ T_ba[:3, :3])
+    err_t = _angle_deg(pose.t, T_ba[:3, 3])
+    assert pose.inliers >= 50
+    assert err_R < 1.0, err_R
+    assert err_t < 5.0, err_t
+    assert abs(np.linalg.norm(pose.t) - 1.0) < 1e-9
+
+
+def test_points_in_camera_a_map_into_camera_b() -> None:
+    """Synthetic correspondences: X_b = R X_a + t with the returned (R, t) (direction of t)."""
+    rng = np.random.default_rng(1)
+    K = INTR.K()
+    X_a = np.c_[rng.uniform(-1.5, 1.5, 200), rng.uniform(-1, 1, 200), rng.uniform(2, 6, 200)]
+    a = np.radians(5.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([0.3, -0.05, 0.1])
+    X_b = X_a @ R.T + t
+
+    def project(X: np.ndarray) -> np.ndarray:
+        x = X @ K.T
+        return x[:, :2] / x[:, 2:]
+
+    pose = relative_pose_essential(project(X_a), project(X_b), K)
+    assert rotation_angle_deg(pose.R.T @ R) < 0.05
+    assert _angle_deg(pose.t, t) < 0.2
+
+
+def test_homography_residual_zero_for_rotation_positive_for_translation() -> None:
+    rng = np.random.default_rng(2)
+    K = INTR.K()
+    X = np.c_[rng.uniform(-1.5, 1.5, 300), rng.uniform(-1, 1, 300), rng.uniform(1, 5, 300)]
+    a = np.radians(4.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+    def project(X: np.ndarray) -> np.ndarray:
+        x = X @ K.T
+        return (x[:, :2] / x[:, 2:]).astype(np.float32)
+
+    assert homography_residual(project(X), project(X @ R.T), 1.0) < 0.01
+    moved = homography_residual(project(X), project(X @ R.T + [0.1, 0, 0]), 1.0)
+    assert moved > 1.0  # 0.1 m sideways at 1-5 m: several pixels of depth-dependent motion
+    assert np.isnan(homography_residual(project(X[:5]), project(X[:5]), 1.0))
+
+
+def test_too_few_points_is_an_error() -> None:
+    with pytest.raises(UserError):
+        relative_pose_essential(np.zeros((4, 2)), np.zeros((4, 2)), INTR.K())
