@@ -185,11 +185,13 @@ class TripletData:
     """Map-style dataset indexed by :class:`Triplet`: the three frames decoded and augmented.
 
     Returns a dict of numpy arrays, or ``{"skipped": key, "error": msg}`` when a frame cannot be
-    read or decoded (the trainer counts it and goes on).
+    read or decoded (the trainer counts it and goes on). With ``two_view``, also the essential-matrix
+    bootstrap's pairs from the middle frame to each source (``relocdepth.twoview.bootstrap_pair`` on
+    the un-jittered images): ``two_view_T (2, 4, 4)``, ``two_view_points (2, N, 3)``, ``two_view_ok (2,)``.
     """
 
-    def __init__(self, frames: ImageFrames, cfg: AugmentConfig) -> None:
-        self.frames, self.cfg = frames, cfg
+    def __init__(self, frames: ImageFrames, cfg: AugmentConfig, two_view: bool = False) -> None:
+        self.frames, self.cfg, self.two_view = frames, cfg, two_view
 
     def __getitem__(self, t: Triplet) -> dict[str, Any]:
         cfg = self.cfg
@@ -212,13 +214,21 @@ class TripletData:
             images.append(img)
             inputs.append(color_jitter(img, jit))
             Ks.append(k.K())
-        return {
+        out = {
             "images": np.stack(images).transpose(0, 3, 1, 2),  # (3, 3, H, W) uint8
             "inputs": np.stack(inputs).transpose(0, 3, 1, 2),
             "K": np.stack(Ks).astype(np.float32),  # (3, 3, 3)
             "index": np.array(idx, dtype=np.int64),
             "is_global": t.is_global,
         }
+        if self.two_view:
+            from relocdepth.twoview import bootstrap_pair
+
+            pairs = [bootstrap_pair(images[1], images[i], Ks[1], Ks[i]) for i in (0, 2)]
+            out["two_view_T"] = np.stack([p[0] for p in pairs])
+            out["two_view_points"] = np.stack([p[1] for p in pairs])
+            out["two_view_ok"] = np.array([p[2] for p in pairs])
+        return out
 
 
 def collate(items: list[dict[str, Any]]) -> dict[str, Any]:
@@ -231,8 +241,9 @@ def collate(items: list[dict[str, Any]]) -> dict[str, Any]:
         "attempted": len(items),
     }
     if ok:
-        for k in ("images", "inputs", "K", "index"):
-            batch[k] = torch.from_numpy(np.stack([it[k] for it in ok]))
+        for k in ("images", "inputs", "K", "index", "two_view_T", "two_view_points", "two_view_ok"):
+            if k in ok[0]:
+                batch[k] = torch.from_numpy(np.stack([it[k] for it in ok]))
         batch["global_frac"] = float(np.mean([it["is_global"] for it in ok]))
     return batch
 

@@ -76,13 +76,17 @@ class Bootstrap:
     then the warps switch to the DSC poses (the paper's loss) while the term fades out.
 
     ``warps``: the warps use the bootstrap poses (else the DSC's). ``w_consistency``: weight of
-    ``L_boot`` (0: not computed). ``T_wc``: ``(B, 3, 4, 4)`` poses of the triplet's frames given from
-    outside (the research oracle: ground truth), or None to use ``nets.relpose``.
+    ``L_boot`` (0: not computed). The source, first match wins: ``T_wc`` ``(B, 3, 4, 4)``, poses of
+    the triplet's frames given from outside (the research oracle: ground truth); ``two_view``, the
+    essential-matrix poses of the pairs middle -> source ``(T (B, 2, 4, 4) with unit translations,
+    points (B, 2, N, 3), ok (B, 2))`` from :func:`relocdepth.twoview.bootstrap_pair`, their
+    translations scaled by the current depth; else ``nets.relpose``.
     """
 
     warps: bool
     w_consistency: float
     T_wc: Tensor | None = None
+    two_view: tuple[Tensor, Tensor, Tensor] | None = None
 
     @property
     def active(self) -> bool:
@@ -188,7 +192,8 @@ def triplet_loss(
     disps = [d.to(dt) for d in nets.depth(x)[: cfg.num_scales]]
     pose_out = (nets.dsc(x) if cfg.use_dsc else nets.pose(x)).to(dt)
     T_boot = None
-    if boot is not None and boot.active:
+    # (two-view poses need the depth for their scale: _triplet_loss_fp32 makes them)
+    if boot is not None and boot.active and (boot.T_wc is not None or boot.two_view is None):
         # The two-frame network learns only through the warps it drives; otherwise its poses are a
         # fixed target for the consistency term.
         with torch.set_grad_enabled(torch.is_grad_enabled() and boot.warps):
@@ -214,6 +219,8 @@ def _triplet_loss_fp32(
     ]
     T, _, _, l_c_img, q_img, c_img = _absolute_poses(pose_out, depths[0], Kf, cfg.use_dsc, "mean")
     T = T.reshape(B, 3, 4, 4)
+    if T_boot is None and boot is not None and boot.active and boot.two_view is not None:
+        T_boot = two_view_poses(boot.two_view, depths[0].reshape(B, 3, 1, H, W)[:, 1], T)
 
     pairs = pairs_for(cfg)
     P = len(pairs)
@@ -288,6 +295,34 @@ def _triplet_loss_fp32(
         diag["valid_frac"] = valid_frac
         diag.update(boot_diag)
     return total, parts, diag
+
+
+def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor, T_fallback: Tensor) -> Tensor:
+    """The triplet's poses ``(B, 3, 4, 4)`` (middle frame = identity) from essential-matrix pairs.
+
+    Each pair's unit translation is scaled by the median, over its triangulated points, of the
+    current depth of the middle frame (``depth_mid (B, 1, H, W)``, detached) at the point over the
+    point's depth in baselines: the translation in the depth network's units. A pair whose two-view
+    pose failed, or has no usable point, takes its relative pose from ``T_fallback (B, 3, 4, 4)``
+    (the DSC's, detached).
+    """
+    T_1i, points, ok = two_view
+    B, _, H, W = depth_mid.shape
+    n = points.shape[2]
+    x = points[..., 0] / (W - 1) * 2 - 1
+    y = points[..., 1] / (H - 1) * 2 - 1
+    grid = torch.stack((x, y), dim=-1).reshape(B, 2 * n, 1, 2).to(depth_mid.dtype)
+    d = F.grid_sample(depth_mid.detach(), torch.nan_to_num(grid, nan=0.0), align_corners=True)
+    ratio = d.reshape(B, 2, n) / points[..., 2].to(depth_mid.dtype)  # NaN where no point
+    scale = torch.nanmedian(ratio, dim=-1).values  # (B, 2)
+    usable = ok.bool() & torch.isfinite(scale) & (scale > 0)
+    T = T_1i.to(depth_mid.dtype).clone()
+    T[..., :3, 3] = T[..., :3, 3] * torch.nan_to_num(scale, nan=0.0).unsqueeze(-1)
+    fallback = torch.stack((geo.relative_pose(T_fallback[:, 1], T_fallback[:, 0]),
+                            geo.relative_pose(T_fallback[:, 1], T_fallback[:, 2])), dim=1).detach()
+    T = torch.where(usable[..., None, None], T, fallback)
+    eye = torch.eye(4, dtype=T.dtype, device=T.device).expand(B, 4, 4)
+    return torch.stack((geo.invert_pose(T[:, 0]), eye, geo.invert_pose(T[:, 1])), dim=1)
 
 
 def _warp_loss(

@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 
 CONFIG_NAME = "config.json"
 # Sources of the relative-pose bootstrap (TrainConfig.bootstrap); "oracle-gt" reads ground truth.
-BOOTSTRAP_SOURCES = ("off", "posenet", "oracle-gt")
+BOOTSTRAP_SOURCES = ("off", "posenet", "essential", "oracle-gt")
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,8 @@ class TrainConfig:
     recompute_warps: bool = False  # checkpoint the warps/SSIM: less memory, a little more time
     # Relative-pose bootstrap (not in the paper; README, fidelity): for the first bootstrap_steps the
     # warps use relative poses from "posenet" (a two-frame network trained by the same photometric
-    # loss) or "oracle-gt" (RESEARCH ONLY: the dataset's ground-truth poses), while the DSC network
+    # loss), "essential" (essential matrix of KLT tracks, translation scaled by the current depth) or
+    # "oracle-gt" (RESEARCH ONLY: the dataset's ground-truth poses), while the DSC network
     # learns them through a consistency term of weight w_bootstrap, which then fades out linearly over
     # bootstrap_fade_steps steps while the warps use the DSC poses (the paper's loss).
     bootstrap: str = "off"
@@ -292,7 +293,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     random.seed(cfg.seed)
     np.random.seed(cfg.seed % 2**32)
     sampler = TripletSampler(frames.keys(), cfg.sampler_config(), dist.rank, dist.world_size, parallax)
-    data = TripletData(frames, cfg.augment_config())
+    data = TripletData(frames, cfg.augment_config(), two_view=cfg.bootstrap == "essential")
     method_cfg, model_cfg = _method_and_model_configs(cfg)
     from relocdepth.models import build_networks
 
@@ -436,6 +437,7 @@ def sample(tr: Trainer, state: RunState, batch: dict[str, Any]) -> dict[str, Any
         "inputs": batch["inputs"].to(dev, non_blocking=nb).float().div_(255.0),
         "K": batch["K"].to(dev, non_blocking=nb),
         "index": batch["index"],
+        **{k: batch[k].to(dev) for k in ("two_view_T", "two_view_points", "two_view_ok") if k in batch},
         "n": int(batch["images"].shape[0]),
         "global_frac": batch["global_frac"],
     }
@@ -452,7 +454,8 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0) -> tuple[Any, 
     warps, w = bootstrap_at(tr.cfg, step)
     if warps or w > 0:
         T_wc = None if tr.gt_poses is None else tr.gt_poses[b["index"]].to(tr.device)
-        boot = Bootstrap(warps, w, T_wc)
+        two_view = (b["two_view_T"], b["two_view_points"], b["two_view_ok"]) if "two_view_T" in b else None
+        boot = Bootstrap(warps, w, T_wc, two_view)
     dtype = torch.bfloat16 if tr.cfg.amp_dtype == "bf16" else torch.float16
     with torch.autocast(tr.device.type, dtype=dtype, enabled=tr.cfg.amp):
         return tr.loss_module(b["images"], b["inputs"], b["K"], boot)

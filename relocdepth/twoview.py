@@ -177,3 +177,53 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     """The angle (degrees) of a rotation matrix."""
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+# Points per pair that the training bootstrap keeps for scaling the translation (padded with NaN).
+BOOTSTRAP_POINTS = 64
+
+
+def bootstrap_pair(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+                   n_points: int = BOOTSTRAP_POINTS, ransac_px: float = 1.0,
+                   cfg: TrackConfig = TrackConfig()) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Relative pose and triangulated depths of a training pair, for the essential-matrix bootstrap.
+
+    The two images may have different intrinsics (training crops and scales each image), so the
+    tracks are normalised by their own ``K`` before the essential matrix (identity camera, threshold
+    ``ransac_px / f_a``). Returns ``T (4, 4)`` = ``T_{b<-a}`` with a unit translation (identity when
+    it fails), ``points (n_points, 3)`` = pixel ``(x, y)`` in image a and the depth of the
+    triangulated inlier there in units of the baseline (NaN rows past the inliers), and ``ok``.
+    The depth network's depth at those pixels over these depths is the translation's length in its
+    units (``relocdepth.method``).
+    """
+    import cv2
+
+    T = np.eye(4, dtype=np.float32)
+    points = np.full((n_points, 3), np.nan, dtype=np.float32)
+    grey_a, grey_b = as_grey(image_a), as_grey(image_b)
+    pa, pb = track_points(grey_a, grey_b, detect_corners(grey_a, cfg), cfg)
+    if len(pa) < 8:
+        return T, points, False
+
+    def normalised(p: np.ndarray, K: np.ndarray) -> np.ndarray:
+        return ((p - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])).astype(np.float64)
+
+    na, nb = normalised(pa, K_a), normalised(pb, K_b)
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.999, ransac_px / float(K_a[0, 0]))
+    if E is None or E.shape[0] < 3:
+        return T, points, False
+    n, R, t, mask = cv2.recoverPose(E[:3], na, nb, np.eye(3), mask=mask)
+    if n < 8:
+        return T, points, False
+    t = t.ravel() / np.linalg.norm(t)
+    inl = mask.ravel() > 0
+    X = cv2.triangulatePoints(np.eye(3, 4), np.hstack((R, t[:, None])), na[inl].T, nb[inl].T)
+    z = X[2] / X[3]
+    good = np.isfinite(z) & (z > 0)
+    xy, z = pa[inl][good], z[good]
+    if len(z) < 5:
+        return T, points, False
+    keep = np.linspace(0, len(z) - 1, min(n_points, len(z))).astype(int)
+    points[: len(keep), :2], points[: len(keep), 2] = xy[keep], z[keep]
+    T[:3, :3], T[:3, 3] = R, t
+    return T, points, True

@@ -197,6 +197,7 @@ def test_recipes_config_files_and_explicit_options_layer(synth_shards: Path, tmp
     """defaults < --recipe < --config < options given on the command line; a run's config.json
     repeats that run."""
     from relocdepth.cli.main import app
+
     from relocdepth.recipes import RECIPES
 
     runner = CliRunner()
@@ -233,3 +234,30 @@ def test_recipes_config_files_and_explicit_options_layer(synth_shards: Path, tmp
         r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "d"), *common, *bad])
         assert r.exit_code == 2 and "error" in r.output, (bad, r.output)
         assert not (tmp_path / "d").exists()
+
+
+def test_two_view_poses_scale_translation_by_depth_and_fall_back() -> None:
+    """Essential-matrix pairs carry unit translations: the depth network's depth at the tracked
+    points over their triangulated depths (in baselines) gives the translation's length."""
+    from relocdepth.method import two_view_poses
+
+    B, n = 2, 8
+    T_true = _random_poses(6, seed=6).float().reshape(B, 3, 4, 4)
+    rel = torch.stack((geo.relative_pose(T_true[:, 1], T_true[:, 0]), geo.relative_pose(T_true[:, 1], T_true[:, 2])), 1)
+    unit = rel.clone()
+    length = unit[..., :3, 3].norm(dim=-1, keepdim=True)
+    unit[..., :3, 3] = unit[..., :3, 3] / length
+    depth = torch.full((B, 1, H, W), 2.0)  # the network's depth units
+    points = torch.full((B, 2, n, 3), float("nan"))
+    points[:, :, :5, 0] = torch.linspace(3, W - 4, 5)
+    points[:, :, :5, 1] = torch.linspace(3, H - 4, 5)
+    points[:, :, :5, 2] = 2.0 / length.squeeze(-1).unsqueeze(-1)  # depth 2 = this many baselines
+    ok = torch.tensor([[True, True], [True, False]])
+    dsc = _random_poses(6, seed=7).float().reshape(B, 3, 4, 4)
+    got = two_view_poses((unit, points, ok), depth, dsc)
+    assert torch.allclose(got[:, 1], torch.eye(4).expand(B, 4, 4))
+    assert torch.allclose(geo.relative_pose(got[0, 1:2], got[0, 0:1]), rel[0, 0:1], atol=1e-5)
+    assert torch.allclose(geo.relative_pose(got[0, 1:2], got[0, 2:3]), rel[0, 1:2], atol=1e-5)
+    # The failed pair takes the DSC's relative pose.
+    assert torch.allclose(geo.relative_pose(got[1, 1:2], got[1, 2:3]),
+                          geo.relative_pose(dsc[1, 1:2], dsc[1, 2:3]), atol=1e-5)
