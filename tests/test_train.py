@@ -312,7 +312,7 @@ import torch
 import relocdepth.train as T
 
 shards, run, out = sys.argv[1:4]
-seen, captured = [], {}
+seen, starts, captured = [], [], {}
 real_setup, real_sample = T.setup, T.sample
 
 
@@ -323,6 +323,11 @@ def _state(nets):
 def setup(*a, **k):
     tr, state = real_setup(*a, **k)
     captured["tr"], captured["init"] = tr, _state(tr.nets)
+
+    def step_start(module, args):  # inside DDP's forward, after it synchronised the buffers
+        starts.append({k: v.detach().cpu().clone() for k, v in tr.nets.named_buffers()})
+
+    tr.loss_module.module.register_forward_pre_hook(step_start)
     return tr, state
 
 
@@ -337,7 +342,8 @@ cfg = T.TrainConfig(size=(64, 64), batch_size=1, pretrained=None, workers=0, pro
                     max_steps=2, log_every=1)
 summary = T.train(shards, run, cfg)
 tr = captured["tr"]
-torch.save({"init": captured["init"], "final": _state(tr.nets), "triplets": seen, "summary": summary},
+torch.save({"init": captured["init"], "final": _state(tr.nets), "starts": starts, "triplets": seen,
+            "summary": summary},
            Path(out) / f"rank{tr.dist.rank}.pt")
 """
 
@@ -377,7 +383,22 @@ def test_ddp_two_ranks_keep_identical_parameters(ddp_run: tuple[Path, dict, dict
 
 
 @pytest.mark.slow
-def test_ddp_two_ranks_keep_identical_batchnorm_buffers(ddp_run: tuple[Path, dict, dict]) -> None:
+def test_ddp_every_step_starts_from_rank0s_batchnorm_buffers(ddp_run: tuple[Path, dict, dict]) -> None:
+    _, r0, r1 = ddp_run
+    assert len(r0["starts"]) == len(r1["starts"]) == 2
+    for s0, s1 in zip(r0["starts"], r1["starts"]):
+        assert s0.keys() == s1.keys() and all(torch.equal(s0[k], s1[k]) for k in s0)
+    moved = [k for k in r0["init"] if "running_" in k and not torch.equal(r0["init"][k], r1["starts"][1][k])]
+    assert moved  # step 2 starts from the statistics step 1 updated, the same on both ranks
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "DDP copies rank 0's BatchNorm running statistics to every rank at the start of each forward, "
+    "then each rank updates them with its own batch: after the last step the ranks' running_mean / "
+    "running_var differ by that step's update (parameters are identical; rank 0's buffers are the "
+    "ones in the checkpoint)"))
+def test_ddp_two_ranks_end_with_identical_batchnorm_buffers(ddp_run: tuple[Path, dict, dict]) -> None:
     _, r0, r1 = ddp_run
     init, w0, w1 = r0["init"], r0["final"], r1["final"]
     buffers = [k for k in w0 if "running_" in k or k.endswith("num_batches_tracked")]
