@@ -74,8 +74,9 @@ def _train_cmd(shards: Path, run: Path, *extra: str) -> list[str]:
 
 
 def _log(run: Path) -> list[dict]:
+    """The run's log records so far (complete lines only: the trainer may be writing one)."""
     p = run / "logs" / "train.jsonl"
-    return [json.loads(x) for x in p.read_text().splitlines()] if p.is_file() else []
+    return [json.loads(x) for x in p.read_text().split("\n")[:-1]] if p.is_file() else []
 
 
 def _logged_steps(run: Path) -> list[int]:
