@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -301,16 +300,108 @@ def test_kill9_then_resume_then_ctrl_c(synth_shards: Path, tmp_path: Path) -> No
     assert any(r.get("event") == "stop" and r.get("reason") == "interrupted" for r in log)
 
 
-@pytest.mark.slow
-def test_ddp_two_ranks_keep_identical_weights(synth_shards: Path, tmp_path: Path) -> None:
-    run = tmp_path / "ddp"
+# Runs relocdepth.train.train under torchrun and, on every rank, saves the networks' state dict
+# (parameters and batch-norm buffers) before and after training plus the frames the rank trained
+# on: rank 0 alone writes checkpoints, so this is how the test sees rank 1's weights.
+_DDP_DUMP = """
+import sys
+from pathlib import Path
+
+import torch
+
+import relocdepth.train as T
+
+shards, run, out = sys.argv[1:4]
+seen, starts, captured = [], [], {}
+real_setup, real_sample = T.setup, T.sample
+
+
+def _state(nets):
+    return {k: v.detach().cpu().clone() for k, v in nets.state_dict().items()}
+
+
+def setup(*a, **k):
+    tr, state = real_setup(*a, **k)
+    captured["tr"], captured["init"] = tr, _state(tr.nets)
+
+    def step_start(module, args):  # inside DDP's forward, after it synchronised the buffers
+        starts.append({k: v.detach().cpu().clone() for k, v in tr.nets.named_buffers()})
+
+    tr.loss_module.module.register_forward_pre_hook(step_start)
+    return tr, state
+
+
+def sample(tr, state, batch):
+    if "index" in batch:
+        seen.append(batch["index"].tolist())
+    return real_sample(tr, state, batch)
+
+
+T.setup, T.sample = setup, sample
+cfg = T.TrainConfig(size=(64, 64), batch_size=1, pretrained=None, workers=0, progress=False,
+                    max_steps=2, log_every=1)
+summary = T.train(shards, run, cfg)
+tr = captured["tr"]
+torch.save({"init": captured["init"], "final": _state(tr.nets), "starts": starts, "triplets": seen,
+            "summary": summary},
+           Path(out) / f"rank{tr.dist.rank}.pt")
+"""
+
+
+@pytest.fixture(scope="module")
+def ddp_run(synth_shards: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, dict]:
+    """A 2-process gloo run of 2 steps: (run folder, rank 0's dump, rank 1's dump)."""
+    tmp = tmp_path_factory.mktemp("ddp")
+    script, run = tmp / "ddp_dump.py", tmp / "run"
+    script.write_text(_DDP_DUMP)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", "relocdepth.cli", "train", str(synth_shards), "-o", str(run), *CLI_FAST, "--max-steps", "2"]
+           str(script), str(synth_shards), str(run), str(tmp)]
     res = subprocess.run(cmd, check=False, env=env, capture_output=True, text=True, timeout=600)
-    out = res.stdout + res.stderr
-    assert res.returncode == 0, out[-3000:]
-    digests = dict(re.findall(r"rank (\d): final parameters sha256 ([0-9a-f]+)", out))
-    assert set(digests) == {"0", "1"} and digests["0"] == digests["1"]
-    meta = torch.load(ckpt_io.latest_checkpoint(run), weights_only=True)["meta"]
-    assert meta["world_size"] == 2 and meta["step"] == 2
+    assert res.returncode == 0, (res.stdout + res.stderr)[-3000:]
+    r0, r1 = (torch.load(tmp / f"rank{r}.pt", weights_only=False) for r in (0, 1))
+    return run, r0, r1
+
+
+@pytest.mark.slow
+def test_ddp_two_ranks_keep_identical_parameters(ddp_run: tuple[Path, dict, dict]) -> None:
+    run, r0, r1 = ddp_run
+    assert (r0["summary"]["rank"], r1["summary"]["rank"]) == (0, 1)
+    assert r0["summary"]["world_size"] == r1["summary"]["world_size"] == 2
+    # The ranks trained on different triplets, so only averaged gradients keep them equal.
+    assert len(r0["triplets"]) == len(r1["triplets"]) == 2 and r0["triplets"] != r1["triplets"]
+    init, w0, w1 = r0["init"], r0["final"], r1["final"]
+    params = [k for k, v in w0.items() if v.is_floating_point() and "running_" not in k]
+    assert params and w0.keys() == w1.keys() == init.keys()
+    assert all(torch.equal(r1["init"][k], init[k]) for k in init)  # same start on both ranks
+    assert sum(not torch.equal(init[k], w0[k]) for k in params) > len(params) // 2  # training moved them
+    assert all(torch.equal(w0[k], w1[k]) for k in params)
+    # Rank 0's checkpoint holds exactly those weights.
+    ck = torch.load(ckpt_io.latest_checkpoint(run), weights_only=True)
+    assert ck["meta"]["world_size"] == 2 and ck["meta"]["step"] == 2
+    assert ck["model"].keys() == w0.keys() and all(torch.equal(ck["model"][k], w0[k]) for k in w0)
+
+
+@pytest.mark.slow
+def test_ddp_every_step_starts_from_rank0s_batchnorm_buffers(ddp_run: tuple[Path, dict, dict]) -> None:
+    _, r0, r1 = ddp_run
+    assert len(r0["starts"]) == len(r1["starts"]) == 2
+    for s0, s1 in zip(r0["starts"], r1["starts"]):
+        assert s0.keys() == s1.keys() and all(torch.equal(s0[k], s1[k]) for k in s0)
+    moved = [k for k in r0["init"] if "running_" in k and not torch.equal(r0["init"][k], r1["starts"][1][k])]
+    assert moved  # step 2 starts from the statistics step 1 updated, the same on both ranks
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "DDP copies rank 0's BatchNorm running statistics to every rank at the start of each forward, "
+    "then each rank updates them with its own batch: after the last step the ranks' running_mean / "
+    "running_var differ by that step's update (parameters are identical; rank 0's buffers are the "
+    "ones in the checkpoint)"))
+def test_ddp_two_ranks_end_with_identical_batchnorm_buffers(ddp_run: tuple[Path, dict, dict]) -> None:
+    _, r0, r1 = ddp_run
+    init, w0, w1 = r0["init"], r0["final"], r1["final"]
+    buffers = [k for k in w0 if "running_" in k or k.endswith("num_batches_tracked")]
+    assert buffers and any(not torch.equal(init[k], w0[k]) for k in buffers)  # training updated them
+    differ = [k for k in buffers if not torch.equal(w0[k], w1[k])]
+    assert not differ, f"{len(differ)} of {len(buffers)} batch-norm buffers differ, e.g. {differ[:3]}"
