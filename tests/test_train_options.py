@@ -130,18 +130,22 @@ def test_demo_runs_end_to_end_at_a_tiny_size(tmp_path: Path, monkeypatch: pytest
 
     # The command as users run it, on a smaller scene than its default (3 x 150 frames at 128x96,
     # batch 6, about 4 minutes at the least on a busy 2-core machine): 3 x 12 frames at 64x64.
-    tiny = functools.partial(demo_mod.DemoConfig, frames=12, size=(64, 64), batch_size=1, calibration_steps=3,
-                             workers=0, eval_batch_size=8)
+    tiny = functools.partial(demo_mod.DemoConfig, frames=12, size=(64, 64), batch_size=1, workers=0,
+                             eval_batch_size=8)
     monkeypatch.setattr(demo_mod, "DemoConfig", tiny)
     out = tmp_path / "demo"
     text = _cli("demo", "-o", str(out), "--minutes", "0.75", "--pretrained", "none")
     assert "pose, test frames" in text and "depth, test frames" in text and "demo done in" in text
+    assert "\nbeats: " in text  # which references the model beats (or "none ... yet")
     done = json.loads((out / "demo.json").read_text())
     assert done["status"] == "done" and done["config"]["size"] == [64, 64]
-    # Both legs ran: a timed first leg, then a resume with the steps that fit the budget.
+    # One run that the trainer stops itself on wall-clock time, with the demo recipe's bootstrap.
     log = [json.loads(x) for x in (out / "run" / "logs" / "train.jsonl").read_text().splitlines()]
-    assert [r["event"] for r in log if r.get("event") in ("start", "resume")] == ["start", "resume"]
-    assert done["train"]["steps"] > 3
+    assert [r["event"] for r in log if r.get("event") in ("start", "resume")] == ["start"]
+    assert done["train"]["stop"] == "max_minutes" and done["train"]["steps"] >= 1
+    assert done["timings"]["train_s"] >= 0.75 * 60
+    steps = [r for r in log if r.get("kind") == "step"]
+    assert steps and steps[0]["diagnostics"]["boot_warps"] == 1.0
     report = json.loads((out / "eval" / "report.json").read_text())
     assert report["checkpoint"]["step"] == done["train"]["steps"]  # it evaluated the final weights
     assert report["dataset"]["test_frames"] == 12 and report["checkpoint"]["input_size"] == [64, 64]

@@ -74,6 +74,7 @@ RECIPES: dict[str, list[str]] = {
     "demo": DEMO,
     "oracle-gt": ["--recipe", "cpu", "--bootstrap", "oracle-gt", "--bootstrap-steps", "100000000"],
     "cpu-bootstrap": ["--recipe", "cpu-bootstrap"],
+    "cpu-essential": ["--recipe", "cpu-bootstrap", "--bootstrap", "essential"],
     "cpu-bootstrap-w10": ["--recipe", "cpu-bootstrap", "--window", "10"],
     "cpu-bootstrap-no-lcvs": ["--recipe", "cpu-bootstrap", "--no-lcvs"],
     "cpu-bootstrap-no-dsc": ["--recipe", "cpu-bootstrap", "--no-dsc"],
