@@ -89,6 +89,20 @@ def barrier(d: Dist) -> None:
         dist.barrier()
 
 
+def broadcast_buffers(d: Dist, module: Any) -> None:
+    """Copy rank 0's buffers (BatchNorm running statistics) to every rank.
+
+    DDP broadcasts them at the start of each forward, after which every rank updates its copy with
+    its own batch; so after the last step the ranks differ by that step's update unless this runs.
+    """
+    if not d.enabled:
+        return
+    import torch.distributed as dist
+
+    for b in module.buffers():
+        dist.broadcast(b.data, src=0)
+
+
 def parameter_digest(module: Any) -> str:
     """sha256 over every parameter's bytes (in name order): equal on all DDP ranks."""
     import torch

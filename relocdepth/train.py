@@ -30,6 +30,7 @@ from relocdepth.data import AugmentConfig, ImageFrames, TripletData, make_loader
 from relocdepth.distributed import (
     Dist,
     any_rank,
+    broadcast_buffers,
     init_distributed,
     parameter_digest,
     shutdown_distributed,
@@ -603,6 +604,7 @@ def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfi
     try:
         with _StopRequest() as stop:
             run_loop(tr, state, stop)
+        broadcast_buffers(tr.dist, tr.nets)  # every rank ends with the checkpoint's BatchNorm statistics
         if state.stop != "diverged" and (state.last_checkpoint is None or state.step % tr.cfg.checkpoint_every):
             checkpoint(tr, state)
         tr.log.event("stop", state.step, reason=state.stop)

@@ -393,11 +393,6 @@ def test_ddp_every_step_starts_from_rank0s_batchnorm_buffers(ddp_run: tuple[Path
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "DDP copies rank 0's BatchNorm running statistics to every rank at the start of each forward, "
-    "then each rank updates them with its own batch: after the last step the ranks' running_mean / "
-    "running_var differ by that step's update (parameters are identical; rank 0's buffers are the "
-    "ones in the checkpoint)"))
 def test_ddp_two_ranks_end_with_identical_batchnorm_buffers(ddp_run: tuple[Path, dict, dict]) -> None:
     _, r0, r1 = ddp_run
     init, w0, w1 = r0["init"], r0["final"], r1["final"]
