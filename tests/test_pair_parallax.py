@@ -112,6 +112,16 @@ def test_ingest_stores_a_verified_table(parallax_shards: Path, tmp_path: Path) -
         verify(open_dataset(bad))
 
 
+def test_ingest_option_through_the_cli(synth_scene: Path, tmp_path: Path) -> None:
+    out = tmp_path / "shards"
+    res = runner.invoke(app, ["ingest", str(synth_scene), "-o", str(out), "--pair-parallax"])
+    assert res.exit_code == 0, res.output
+    pairs = open_dataset(out).manifest["parallax"]["pairs"]
+    assert f"{pairs} parallax pairs" in res.output
+    res = runner.invoke(app, ["inspect", str(out)])
+    assert res.exit_code == 0 and "offset  16: median" in res.output and "offset  32" not in res.output
+
+
 def test_add_parallax_to_an_existing_dataset(synth_scene: Path, parallax_shards: Path, tmp_path: Path) -> None:
     out = tmp_path / "plain"
     res = runner.invoke(app, ["ingest", str(synth_scene), "-o", str(out), "--shard-size", "16",
