@@ -36,7 +36,7 @@ def ingest(
     scene: Annotated[str | None, typer.Option(metavar="NAME", help="Which scene of a 7-Scenes root holding several scenes.")] = None,
     shard_size: Annotated[int, typer.Option(min=1, help="Samples (frames) per shard; a shard never mixes sequences.")] = 1000,
     video_format: Annotated[str, typer.Option(metavar="jpg|png", help="How decoded video frames are stored: jpg (quality 95, fast) or png (lossless, slow to write, ~4x larger).")] = "jpg",
-    pair_parallax: Annotated[bool, typer.Option("--pair-parallax/--no-pair-parallax", help="Estimate, for frame pairs 1, 2, 4, ... 32 apart, the image motion rotation cannot explain (KLT tracks + homography residual on 160 px grey copies), stored as a parquet table for `reloc train --min-parallax`.")] = True,
+    pair_parallax: Annotated[bool, typer.Option("--pair-parallax/--no-pair-parallax", help="Estimate, for frame pairs 1, 2, 4, ... 32 apart, the image motion rotation cannot explain (KLT tracks + homography residual on 160 px grey copies), stored as a parquet table for `reloc train --min-parallax`. Off by default: it multiplies the ingest time of PNG sources (see README, Performance).")] = False,
     force: Annotated[bool, typer.Option("--force", help="Replace the output folder if it exists.")] = False,
     strict: Annotated[bool, typer.Option("--strict", help="Fail on a corrupt frame instead of skipping it (skipped frames are listed in the manifest and counted in a warning).")] = False,
 ) -> None:

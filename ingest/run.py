@@ -68,7 +68,7 @@ class IngestConfig:
     png_compression: int = 1  # zlib level for written PNGs: 1 is ~3x faster than OpenCV's 3, ~10% larger
     decode_check: bool = False  # also fully decode copied images (header/end-marker checks always run)
     workers: int = 2  # threads preparing frames (OpenCV releases the GIL while coding images)
-    pair_parallax: bool = True  # estimate pair parallax (parallax.parquet); +~PCT% ingest time at 640x480
+    pair_parallax: bool = False  # estimate pair parallax (parallax.parquet); off: costs > 1.5x ingest time
     parallax_offsets: tuple[int, ...] = ParallaxConfig.offsets  # pairs (i, i+k) for these k
     parallax_width: int = ParallaxConfig.track_width  # px width of the grey copies tracked
 
