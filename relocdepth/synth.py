@@ -384,18 +384,15 @@ ISLAND_SIZE = (0.8, 1.1)
 
 
 def _island(b: _Builder, cam_lo: np.ndarray, cam_hi: np.ndarray, clear: float) -> None:
-    """A low table under the cameras with objects on it, its top (objects included) kept
-    ``clear`` below the lowest camera: the near clutter of a look down."""
+    """A low kitchen island (a block) under the cameras with objects on it, its top (objects
+    included) kept ``clear`` below the lowest camera: the near clutter of a look down."""
     rng = b.rng
     centre = (cam_lo[:2] + cam_hi[:2]) / 2
     half = (cam_hi[:2] - cam_lo[:2]) / 2 * rng.uniform(ISLAND_SIZE[0], ISLAND_SIZE[1], 2)
     objects = rng.uniform(0.08, 0.14)
     top = cam_lo[2] - clear - objects
     xy_lo, xy_hi = centre - half, centre + half
-    b.box(np.append(xy_lo, top - 0.04), np.append(xy_hi, top))
-    for x in (xy_lo[0] + 0.03, xy_hi[0] - 0.08):
-        for y in (xy_lo[1] + 0.03, xy_hi[1] - 0.08):
-            b.box(np.array([x, y, 0.0]), np.array([x + 0.05, y + 0.05, top - 0.04]))
+    b.box(np.append(xy_lo, 0.0), np.append(xy_hi, top))
     wall = _Wall(1, -1.0, np.append(xy_lo, 0.0), np.append(xy_hi, 0.0))  # rows along x
     rows = int(max(1, (xy_hi[1] - xy_lo[1]) // 0.3))
     edges = np.linspace(0.0, xy_hi[1] - xy_lo[1], rows + 1)
@@ -517,7 +514,9 @@ def _hit_box(b: Box, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.nd
         n0, n1, n2 = near[0][mask], near[1][mask], near[2][mask]
         a = np.where((n0 >= n1) & (n0 >= n2), 0, np.where(n1 >= n2, 1, 2))  # the entry axis
         plus = d_l[mask][np.arange(len(a)), a] < 0  # going towards -axis: enters the + face
-        return b.face0 + 2 * a + plus, rot[:, a].T * np.where(plus, 1.0, -1.0)[:, None]
+        local = 2 * a + plus
+        normals = np.stack([-rot[:, 0], rot[:, 0], -rot[:, 1], rot[:, 1], -rot[:, 2], rot[:, 2]])
+        return b.face0 + local, normals[local]
 
     return t_in, hit, surface
 
