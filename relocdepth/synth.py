@@ -146,6 +146,10 @@ EDGE_WAVELENGTHS = (0.08, 0.45)
 EDGE_SHARPNESS = 8.0   # tanh gain of the stripes when the pixel footprint is negligible
 
 
+MAX_FURNITURE_DEPTH = 0.65  # metres from the wall: a kitchen counter
+MIN_FURNITURE_DEPTH = 0.3   # less leaves no room for a table and a chair
+
+
 def build_scene(seed: int, cfg: SynthConfig | None = None) -> Scene:
     """The room and its furniture for ``seed`` (geometry from ``cfg``, whose own seed is ignored).
 
@@ -160,21 +164,22 @@ def build_scene(seed: int, cfg: SynthConfig | None = None) -> Scene:
     lo, hi = np.array([-half[0], -half[1], 0.0]), np.array([half[0], half[1], cfg.room[2]])
     faces = _FaceTextures(rng)
     _room_faces(faces, rng)
-    b = _Builder(faces, rng, lo, hi)
+    b = _Builder(faces, rng)
     cam_lo, cam_hi = np.array(cfg.camera_lo), np.array(cfg.camera_hi)
     # Room-depth (metres from the wall) each wall's furniture may take: up to the clearance.
     walls = [(axis, side) for axis in (1, 0) for side in (-1.0, 1.0)]
     room_depth = [float((cam_lo[a] - lo[a] if s < 0 else hi[a] - cam_hi[a]) - cfg.min_clearance)
                   for a, s in walls]
-    if min(room_depth) < 0.3:
+    if min(room_depth) < MIN_FURNITURE_DEPTH:
         raise UserError("the camera box leaves no room for furniture: enlarge the room")
     kinds = [str(k) for k in rng.permutation(["counter", "counter", "table", "bookcase"])]
     for w, ((axis, side), kind) in enumerate(zip(walls, kinds)):
-        depth = min(room_depth[w], 0.65)
+        depth = min(room_depth[w], MAX_FURNITURE_DEPTH)
         if axis == 1:  # the long walls run corner to corner; the short ones fit between them
             s0, s1 = lo[0] + 0.02, hi[0] - 0.02
         else:
-            s0, s1 = lo[1] + min(room_depth[0], 0.65) + 0.05, hi[1] - min(room_depth[1], 0.65) - 0.05
+            s0 = lo[1] + min(room_depth[0], MAX_FURNITURE_DEPTH) + 0.05
+            s1 = hi[1] - min(room_depth[1], MAX_FURNITURE_DEPTH) - 0.05
         wall = _Wall(axis, side, lo, hi)
         {"counter": _counter, "table": _table, "bookcase": _bookcase}[kind](b, wall, s0, s1, depth)
     _island(b, cam_lo, cam_hi, cfg.min_clearance)
@@ -289,9 +294,8 @@ class _Wall:
 class _Builder:
     """Collects the primitives (and their textures) of the furniture while the scene is built."""
 
-    def __init__(self, faces: _FaceTextures, rng: np.random.Generator, lo: np.ndarray,
-                 hi: np.ndarray) -> None:
-        self.faces, self.rng, self.lo, self.hi = faces, rng, lo, hi
+    def __init__(self, faces: _FaceTextures, rng: np.random.Generator) -> None:
+        self.faces, self.rng = faces, rng
         self.boxes: list[Box] = []
         self.spheres: list[Sphere] = []
         self.cylinders: list[Cylinder] = []
@@ -497,7 +501,7 @@ Surface = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 def _hit_box(b: Box, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, Surface]:
     """Slab test: entry ``t`` (N,), ``hit`` (N,), and ``surface(mask)``: face (M,) and outward
     normal (M, 3) of the rays in ``mask`` (computed only for the rays that need them). One axis
-    at a time on contiguous columns: faster than reductions over an axis of length 3."""
+    at a time on 1-D arrays: faster than reductions over an axis of length 3."""
     rot = b.rotation()
     o_l = rot.T @ (o - b.centre)
     d_l = dirs if b.yaw == 0.0 else _lin(dirs, rot)  # furniture is mostly axis-aligned
