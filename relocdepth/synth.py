@@ -1,23 +1,28 @@
 """A generated indoor scene in the exact Microsoft 7-Scenes layout: the demo data, test fixture
 and evaluation ground truth of the project.
 
-The scene is a textured room (a box, z up, floor at z = 0) with boxes, cylinders, spheres and
-picture frames in it. Frames are rendered by exact analytic ray casting in numpy, so depth
-(z-depth along the camera axis, as 7-Scenes stores it) and poses are exact. Colours come from
-procedural textures evaluated at the 3-D hit point (sums of sinusoids at several scales plus
-soft-edged stripes), prefiltered analytically by the pixel footprint so that bilinear resampling
-works, and shaded by a view-independent (Lambertian) light term, so photometric consistency holds.
+The scene is a kitchen-sized textured room (a box, z up, floor at z = 0) lined with furniture
+(counters with objects on them and wall shelves above, a table with a chair, a bookcase, low
+cabinets) and a low island under the cameras with objects on it: boxes, cylinders and spheres
+0.5-1.5 m from the camera paths, with depth discontinuities everywhere, as a real kitchen has.
+Frames are rendered by exact analytic ray casting in numpy, so depth (z-depth along the camera
+axis, as 7-Scenes stores it) and poses are exact. Colours come from procedural textures evaluated
+at the 3-D hit point (sums of sinusoids at several scales plus soft-edged stripes), prefiltered
+analytically by the pixel footprint so that bilinear resampling works, and shaded by a
+view-independent (Lambertian) light term, so photometric consistency holds.
 
-Camera paths are smooth sums of low-frequency sinusoids (position; yaw, pitch, roll), traversed
-at the speed that gives the per-frame motion of a handheld 7-Scenes sequence at 30 fps
-(a median 0.74 cm and 1.6 deg per frame). The test sequence follows the first training path
-offset by 10-30 cm with a slightly perturbed orientation: near, but not on, the training paths.
-Everything is deterministic from the seed.
+Camera paths move like handheld 7-Scenes video at 30 fps: a smooth path (sums of low-frequency
+sinusoids) at a median 0.72 cm per frame whose heading turns slowly (0.3 deg per frame), plus
+a bounded hand tremor (about 0.85 deg RMS, periods of a few frames) that makes the per-frame
+rotation about 1.5 deg without adding up over longer gaps. The test sequence follows the first
+training path offset by 18-26 cm with a slightly perturbed orientation: near, but not on, the
+training paths. Everything is deterministic from the seed.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import logging
 import os
@@ -50,16 +55,17 @@ class SynthConfig:
     height: int = 480
     train_sequences: int = 2           # seq-01..seq-N train, seq-(N+1) test (7-Scenes scenes: 2-12)
     fps: float = 30.0                  # 7-Scenes (Kinect) frame rate; also the mp4 rate
-    step_m: float = 0.0075             # median translation per frame (7-Scenes: 0.74 cm)
-    step_deg: float = 1.6              # median rotation per frame (7-Scenes: 1.6 deg)
-    calibration_frames: int = 300      # the steps are medians over this many frames (7-Scenes-ish)
-    room: Vec3 = (4.2, 3.2, 2.6)       # room size x, y, z (an office-sized box)
+    step_m: float = 0.0072             # median translation per frame (7-Scenes: 0.74 cm)
+    turn_deg: float = 0.3              # median smooth (heading) rotation per frame, tremor aside
+    tremor_deg: float = 0.85           # RMS per axis of the hand tremor (7-Scenes: 1.6 deg/frame)
+    calibration_frames: int = 300      # the speeds are medians over this many frames
+    room: Vec3 = (3.5, 2.7, 2.6)       # room size x, y, z (a kitchen-sized box)
     camera_lo: Vec3 = (-0.8, -0.5, 1.15)  # every camera centre stays in this box ...
-    camera_hi: Vec3 = (0.8, 0.5, 1.65)    # ... which objects keep min_clearance away from
-    min_clearance: float = 0.5         # no surface nearer than this to a camera centre
+    camera_hi: Vec3 = (0.8, 0.5, 1.65)    # ... which furniture keeps min_clearance away from
+    min_clearance: float = 0.3         # no surface nearer than this to a camera centre
     path_amplitude: Vec3 = (0.5, 0.22, 0.12)  # reach of a training path about its centre
     yaw_amplitude: float = 100.0       # how far a path pans left/right about its base heading
-    pitch_base: float = -10.0          # looking slightly down, at objects and floor
+    pitch_base: float = -30.0          # looking down, at the island, counters and tables
     pitch_amplitude: float = 12.0
     roll_amplitude: float = 4.0        # handheld cameras roll a little
     test_offset: float = 0.22          # horizontal offset of the test path from seq-01 (+-4 cm)
@@ -130,6 +136,7 @@ class Scene:
     n_smooth: int
     light_dir: np.ndarray     # (3,) unit, towards the light
     light_pos: np.ndarray     # (3,) a soft ceiling light for a smooth spatial falloff
+    corners: np.ndarray       # (P, 8, 3) bounding-box corners of boxes, spheres, cylinders (culling)
 
 
 N_SMOOTH = 12          # sinusoids per face, wavelengths log-spaced over WAVELENGTHS
@@ -139,36 +146,52 @@ EDGE_WAVELENGTHS = (0.08, 0.45)
 EDGE_SHARPNESS = 8.0   # tanh gain of the stripes when the pixel footprint is negligible
 
 
+MAX_FURNITURE_DEPTH = 0.65  # metres from the wall: a kitchen counter
+MIN_FURNITURE_DEPTH = 0.3   # less leaves no room for a table and a chair
+
+
 def build_scene(seed: int, cfg: SynthConfig | None = None) -> Scene:
-    """The room and its objects for ``seed`` (geometry from ``cfg``, whose own seed is ignored)."""
+    """The room and its furniture for ``seed`` (geometry from ``cfg``, whose own seed is ignored).
+
+    Every wall is lined with one piece of furniture, in a random order per seed: two kitchen
+    counters (objects on top, a wall shelf with objects above), a table (objects, a chair, a
+    picture above) and a bookcase (objects on every board) beside a low cabinet. Furniture reaches
+    into the room up to ``min_clearance`` from the box the cameras move in, so whatever way a
+    camera looks, clutter stands 0.5-1.5 m in front of it and the wall behind."""
     cfg = cfg or SynthConfig()
     rng = np.random.default_rng([seed, 0])
     half = np.array(cfg.room) / 2
     lo, hi = np.array([-half[0], -half[1], 0.0]), np.array([half[0], half[1], cfg.room[2]])
     faces = _FaceTextures(rng)
     _room_faces(faces, rng)
-    boxes: list[Box] = []
-    spheres: list[Sphere] = []
-    cylinders: list[Cylinder] = []
-    footprints: list[tuple[float, float, float]] = []  # (x, y, radius) of floor objects
-    for kind in ("low",) * 3 + ("tall",) * 2 + ("cyl",) * 2 + ("sphere",) * 2:
-        obj = _place_object(kind, rng, cfg, lo, hi, footprints, faces)
-        if isinstance(obj, Box):
-            boxes.append(obj)
-        elif isinstance(obj, Sphere):
-            spheres.append(obj)
-        elif isinstance(obj, Cylinder):
-            cylinders.append(obj)
-    for _ in range(3):
-        boxes.append(_picture_frame(rng, lo, hi, faces))
+    b = _Builder(faces, rng)
+    cam_lo, cam_hi = np.array(cfg.camera_lo), np.array(cfg.camera_hi)
+    # Room-depth (metres from the wall) each wall's furniture may take: up to the clearance.
+    walls = [(axis, side) for axis in (1, 0) for side in (-1.0, 1.0)]
+    room_depth = [float((cam_lo[a] - lo[a] if s < 0 else hi[a] - cam_hi[a]) - cfg.min_clearance)
+                  for a, s in walls]
+    if min(room_depth) < MIN_FURNITURE_DEPTH:
+        raise UserError("the camera box leaves no room for furniture: enlarge the room")
+    kinds = [str(k) for k in rng.permutation(["counter", "counter", "table", "bookcase"])]
+    for w, ((axis, side), kind) in enumerate(zip(walls, kinds)):
+        depth = min(room_depth[w], MAX_FURNITURE_DEPTH)
+        if axis == 1:  # the long walls run corner to corner; the short ones fit between them
+            s0, s1 = lo[0] + 0.02, hi[0] - 0.02
+        else:
+            s0 = lo[1] + min(room_depth[0], MAX_FURNITURE_DEPTH) + 0.05
+            s1 = hi[1] - min(room_depth[1], MAX_FURNITURE_DEPTH) - 0.05
+        wall = _Wall(axis, side, lo, hi)
+        {"counter": _counter, "table": _table, "bookcase": _bookcase}[kind](b, wall, s0, s1, depth)
+    _island(b, cam_lo, cam_hi, cfg.min_clearance)
     light = np.array([0.35, 0.55, 1.0])
     return Scene(
-        lo=lo, hi=hi, boxes=tuple(boxes), spheres=tuple(spheres), cylinders=tuple(cylinders),
+        lo=lo, hi=hi, boxes=tuple(b.boxes), spheres=tuple(b.spheres), cylinders=tuple(b.cylinders),
         base=np.array(faces.base, np.float32), freq=np.array(faces.freq, np.float32),
         phase=np.array(faces.phase, np.float32), weight=np.array(faces.weight, np.float32),
         freq_norm=np.linalg.norm(np.array(faces.freq, np.float32), axis=2),
         n_smooth=N_SMOOTH, light_dir=light / np.linalg.norm(light),
         light_pos=np.array([0.3 * lo[0], 0.2 * hi[1], hi[2] - 0.2]),
+        corners=np.array([_bounds(p) for p in (*b.boxes, *b.spheres, *b.cylinders)]).reshape(-1, 8, 3),
     )
 
 
@@ -241,64 +264,172 @@ def _box_faces(faces: _FaceTextures, yaw: float) -> int:
     return first
 
 
-def _aabb_gap(a_lo: np.ndarray, a_hi: np.ndarray, b_lo: np.ndarray, b_hi: np.ndarray) -> float:
-    """Euclidean distance between two axis-aligned boxes (0 when they overlap)."""
-    gap = np.maximum(0.0, np.maximum(a_lo - b_hi, b_lo - a_hi))
-    return float(np.linalg.norm(gap))
+@dataclass(frozen=True)
+class _Wall:
+    """Coordinates along a wall: ``s`` along it (world axis ``1 - axis``), ``n`` metres from it
+    into the room, ``z`` up. The wall is the room face at ``axis`` on ``side`` (-1: lo, +1: hi)."""
+
+    axis: int
+    side: float
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def bounds(self, s: tuple[float, float], n: tuple[float, float], z: tuple[float, float]
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """World corners (lo, hi) of the box spanning ``s``, ``n`` and ``z`` intervals."""
+        a = self.axis
+        at = self.lo[a] if self.side < 0 else self.hi[a]
+        ends = sorted((at - self.side * n[0], at - self.side * n[1]))
+        box_lo, box_hi = np.zeros(3), np.zeros(3)
+        box_lo[1 - a], box_hi[1 - a] = s
+        box_lo[a], box_hi[a] = ends
+        box_lo[2], box_hi[2] = z
+        return box_lo, box_hi
+
+    def point(self, s: float, n: float, z: float) -> np.ndarray:
+        """The world point at ``(s, n, z)``."""
+        return self.bounds((s, s), (n, n), (z, z))[0]
 
 
-def _place_object(kind: str, rng: np.random.Generator, cfg: SynthConfig, lo: np.ndarray,
-                  hi: np.ndarray, footprints: list[tuple[float, float, float]],
-                  faces: _FaceTextures) -> Box | Sphere | Cylinder | None:
-    """Rejection-sample one floor object that keeps clear of the camera box and of the other
-    floor objects; None when no place is found (deterministic either way)."""
-    cam_lo, cam_hi = np.array(cfg.camera_lo), np.array(cfg.camera_hi)
-    for _ in range(200):
-        if kind in ("low", "tall"):
-            half_xy = rng.uniform(0.15, 0.45, 2) if kind == "low" else rng.uniform(0.15, 0.32, 2)
-            height = rng.uniform(0.25, 0.6) if kind == "low" else rng.uniform(1.0, 2.2)
-            radius, top = float(np.linalg.norm(half_xy)), height
-        elif kind == "cyl":
-            radius, top = rng.uniform(0.08, 0.25), rng.uniform(0.5, hi[2])
+class _Builder:
+    """Collects the primitives (and their textures) of the furniture while the scene is built."""
+
+    def __init__(self, faces: _FaceTextures, rng: np.random.Generator) -> None:
+        self.faces, self.rng = faces, rng
+        self.boxes: list[Box] = []
+        self.spheres: list[Sphere] = []
+        self.cylinders: list[Cylinder] = []
+
+    def box(self, lo: np.ndarray, hi: np.ndarray, yaw: float = 0.0) -> None:
+        """A box between world corners ``lo`` and ``hi`` (before turning by ``yaw`` about z)."""
+        centre, half = (lo + hi) / 2, (hi - lo) / 2
+        self.boxes.append(Box(centre, half, yaw, _box_faces(self.faces, yaw)))
+
+    def cylinder(self, xy: np.ndarray, radius: float, z0: float, z1: float) -> None:
+        base = self.faces.palette()
+        f0 = self.faces.add(base, None)
+        self.faces.add(base * 0.9, np.array([0.0, 0.0, 1.0]))
+        self.faces.add(base * 0.9, np.array([0.0, 0.0, 1.0]))
+        self.cylinders.append(Cylinder(np.asarray(xy, float), radius, z0, z1, f0))
+
+    def sphere(self, centre: np.ndarray, radius: float) -> None:
+        self.spheres.append(Sphere(np.asarray(centre, float), radius,
+                                   self.faces.add(self.faces.palette(val=(0.4, 0.65)), None)))
+
+
+def _clutter(b: _Builder, wall: _Wall, s: tuple[float, float], n: tuple[float, float], z: float,
+             max_height: float, fill: float = 0.6) -> None:
+    """Objects standing on the surface at height ``z`` over ``s`` x ``n`` (wall coordinates):
+    boxes (turned at random), cylinders and spheres up to ``max_height`` tall, side by side along
+    the wall with gaps, covering about ``fill`` of its length."""
+    rng = b.rng
+    cursor = s[0] + rng.uniform(0.0, 0.1)
+    while True:
+        r = min(rng.uniform(0.04, 0.13), (n[1] - n[0]) / 2 - 0.01)
+        if cursor + 2 * r > s[1] or r < 0.02:
+            return
+        centre_s = cursor + r
+        centre_n = rng.uniform(n[0] + r, n[1] - r)
+        xy = wall.point(centre_s, centre_n, z)[:2]
+        height = rng.uniform(min(0.06, max_height), max_height)
+        kind = rng.choice(["box", "box", "cylinder", "cylinder", "sphere"])
+        if kind == "box":  # half sizes up to r / sqrt 2: fits its footprint at any turn
+            half = np.append(rng.uniform(0.45, 0.7, 2) * r, height / 2)
+            centre = np.append(xy, z + height / 2)
+            b.box(centre - half, centre + half, float(rng.uniform(0, np.pi)))
+        elif kind == "cylinder":
+            b.cylinder(xy, float(r * rng.uniform(0.5, 1.0)), z, z + height)
         else:
-            radius = rng.uniform(0.12, 0.3)
-            top = 2 * radius
-        xy = rng.uniform(lo[:2] + radius, hi[:2] - radius)
-        obj_lo = np.array([xy[0] - radius, xy[1] - radius, 0.0])
-        obj_hi = np.array([xy[0] + radius, xy[1] + radius, top])
-        if _aabb_gap(obj_lo, obj_hi, cam_lo, cam_hi) < cfg.min_clearance:
-            continue
-        if any(np.hypot(xy[0] - x, xy[1] - y) < radius + r + 0.05 for x, y, r in footprints):
-            continue
-        footprints.append((float(xy[0]), float(xy[1]), float(radius)))
-        if kind in ("low", "tall"):
-            yaw = float(rng.uniform(0, np.pi))
-            half = np.array([half_xy[0], half_xy[1], top / 2])
-            return Box(np.array([xy[0], xy[1], top / 2]), half, yaw, _box_faces(faces, yaw))
-        if kind == "cyl":
-            base = faces.palette()
-            f0 = faces.add(base, None)
-            faces.add(base * 0.9, np.array([0.0, 0.0, 1.0]))
-            faces.add(base * 0.9, np.array([0.0, 0.0, 1.0]))
-            return Cylinder(np.array(xy), float(radius), 0.0, float(top), f0)
-        return Sphere(np.array([xy[0], xy[1], radius]), float(radius),
-                      faces.add(faces.palette(val=(0.4, 0.65)), None))
-    return None
+            radius = min(r, height / 2)
+            b.sphere(np.append(xy, z + radius), float(radius))
+        cursor += 2 * r + rng.uniform(0.02, 0.3) * (1 - fill) / 0.4
 
 
-def _picture_frame(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray,
-                   faces: _FaceTextures) -> Box:
-    """A thin box on a wall (a picture or a board): a small depth step on a wall."""
-    axis, side = int(rng.integers(2)), float(rng.choice([-1.0, 1.0]))
-    width, height, thick = rng.uniform(0.3, 0.8), rng.uniform(0.3, 0.6), 0.02
-    half = np.array([thick, thick, height / 2])
-    half[1 - axis] = width / 2
-    centre = np.zeros(3)
-    centre[axis] = (hi[axis] if side > 0 else lo[axis]) - side * thick
-    other = 1 - axis
-    centre[other] = rng.uniform(lo[other] + width, hi[other] - width)
-    centre[2] = rng.uniform(1.0, 2.0)
-    return Box(centre, half, 0.0, _box_faces(faces, 0.0))
+def _counter(b: _Builder, wall: _Wall, s0: float, s1: float, depth: float) -> None:
+    """A kitchen counter along the whole wall with objects on it, and a wall shelf above it with
+    smaller objects."""
+    rng = b.rng
+    top = rng.uniform(0.86, 0.94)
+    b.box(*wall.bounds((s0, s1), (0.0, depth), (0.0, top)))
+    _clutter(b, wall, (s0, s1), (0.03, depth - 0.03), top, 0.42, fill=0.65)
+    length = rng.uniform(0.9, 1.6)
+    a = s0 + rng.uniform(0.0, max(s1 - length - s0, 0.0))
+    shelf_z, shelf_n = rng.uniform(1.45, 1.65), min(0.3, depth)
+    b.box(*wall.bounds((a, a + length), (0.0, shelf_n), (shelf_z - 0.03, shelf_z)))
+    _clutter(b, wall, (a, a + length), (0.02, shelf_n - 0.02), shelf_z, 0.3, fill=0.6)
+
+
+def _table(b: _Builder, wall: _Wall, s0: float, s1: float, depth: float) -> None:
+    """A table against the wall with objects on it, a chair beside it and a picture above."""
+    rng = b.rng
+    width = min(rng.uniform(1.1, 1.6), s1 - s0 - 0.6)
+    a = s0 + 0.6 + rng.uniform(0.0, max(s1 - width - s0 - 0.6, 0.0))
+    top = rng.uniform(0.72, 0.78)
+    b.box(*wall.bounds((a, a + width), (0.0, depth), (top - 0.04, top)))
+    for s in (a + 0.03, a + width - 0.08):
+        for n in (0.03, depth - 0.08):
+            b.box(*wall.bounds((s, s + 0.05), (n, n + 0.05), (0.0, top - 0.04)))
+    _clutter(b, wall, (a, a + width), (0.03, depth - 0.03), top, 0.4, fill=0.7)
+    seat = min(0.44, depth - 0.1)
+    c = a - seat - rng.uniform(0.05, 0.12)  # a chair at the table's end, its back to the table
+    n0 = 0.05 + rng.uniform(0.0, max(depth - seat - 0.1, 0.0))
+    b.box(*wall.bounds((c, c + seat), (n0, n0 + seat), (0.42, 0.47)))
+    b.box(*wall.bounds((c, c + 0.04), (n0, n0 + seat), (0.47, 0.92)))
+    b.cylinder(wall.point(c + seat / 2, n0 + seat / 2, 0.0)[:2], 0.03, 0.0, 0.42)
+    pw = rng.uniform(0.4, 0.8)
+    p0 = rng.uniform(a, a + width - pw)
+    pz = rng.uniform(1.2, 1.6)
+    b.box(*wall.bounds((p0, p0 + pw), (0.0, 0.025), (pz, pz + rng.uniform(0.3, 0.55))))
+    if a + width + 0.5 < s1:  # a low cabinet fills the rest of the wall
+        _cabinet(b, wall, a + width + 0.1, s1, depth)
+
+
+ISLAND_SIZE = (0.8, 1.1)
+
+
+def _island(b: _Builder, cam_lo: np.ndarray, cam_hi: np.ndarray, clear: float) -> None:
+    """A low kitchen island (a block) under the cameras with objects on it, its top (objects
+    included) kept ``clear`` below the lowest camera: the near clutter of a look down."""
+    rng = b.rng
+    centre = (cam_lo[:2] + cam_hi[:2]) / 2
+    half = (cam_hi[:2] - cam_lo[:2]) / 2 * rng.uniform(ISLAND_SIZE[0], ISLAND_SIZE[1], 2)
+    objects = rng.uniform(0.08, 0.14)
+    top = cam_lo[2] - clear - objects
+    xy_lo, xy_hi = centre - half, centre + half
+    b.box(np.append(xy_lo, 0.0), np.append(xy_hi, top))
+    wall = _Wall(1, -1.0, np.append(xy_lo, 0.0), np.append(xy_hi, 0.0))  # rows along x
+    rows = int(max(1, (xy_hi[1] - xy_lo[1]) // 0.3))
+    edges = np.linspace(0.0, xy_hi[1] - xy_lo[1], rows + 1)
+    for n0, n1 in itertools.pairwise(edges):
+        _clutter(b, wall, (xy_lo[0] + 0.03, xy_hi[0] - 0.03), (n0 + 0.02, n1 - 0.02), top,
+                 objects, fill=0.6)
+
+
+def _cabinet(b: _Builder, wall: _Wall, s0: float, s1: float, depth: float) -> None:
+    """A low cabinet with objects on it."""
+    top = b.rng.uniform(0.5, 0.9)
+    d = b.rng.uniform(0.35, depth)
+    b.box(*wall.bounds((s0, s1), (0.0, d), (0.0, top)))
+    _clutter(b, wall, (s0, s1), (0.03, d - 0.03), top, 0.45, fill=0.5)
+
+
+def _bookcase(b: _Builder, wall: _Wall, s0: float, s1: float, depth: float) -> None:
+    """An open bookcase (sides, boards, objects on every board) and a low cabinet beside it."""
+    rng = b.rng
+    width = min(rng.uniform(0.8, 1.3), (s1 - s0) / 2)
+    a = s0 + rng.uniform(0.0, max(s1 - width - s0, 0.0))
+    d, height = min(0.38, depth), rng.uniform(1.8, 2.1)
+    for s in (a, a + width - 0.03):
+        b.box(*wall.bounds((s, s + 0.03), (0.0, d), (0.0, height)))
+    levels = np.linspace(0.05, height - 0.03, 5)
+    for z0, z1 in itertools.pairwise(levels):
+        b.box(*wall.bounds((a + 0.03, a + width - 0.03), (0.0, d), (z0 - 0.03, z0)))
+        _clutter(b, wall, (a + 0.04, a + width - 0.04), (0.02, d - 0.02), z0, z1 - z0 - 0.06,
+                 fill=0.8)
+    b.box(*wall.bounds((a + 0.03, a + width - 0.03), (0.0, d), (height - 0.03, height)))
+    for lo_s, hi_s in ((s0, a - 0.1), (a + width + 0.1, s1)):
+        if hi_s - lo_s > 0.5:
+            _cabinet(b, wall, lo_s, hi_s, depth)
 
 
 def clearance(scene: Scene, points: np.ndarray) -> np.ndarray:
@@ -364,30 +495,48 @@ def _bounds(prim: Box | Sphere | Cylinder) -> np.ndarray:
                     np.array([*(prim.centre_xy + r), prim.z1]))
 
 
-def _hit_box(b: Box, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Slab test: entry ``t`` (N,), ``hit`` (N,), face (N,), outward normal (N, 3)."""
-    n = len(dirs)
+Surface = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def _hit_box(b: Box, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, Surface]:
+    """Slab test: entry ``t`` (N,), ``hit`` (N,), and ``surface(mask)``: face (M,) and outward
+    normal (M, 3) of the rays in ``mask`` (computed only for the rays that need them). One axis
+    at a time on 1-D arrays: faster than reductions over an axis of length 3."""
     rot = b.rotation()
-    o_l, d_l = rot.T @ (o - b.centre), _lin(dirs, rot)
-    t1, t2 = (-b.half - o_l) / d_l, (b.half - o_l) / d_l
-    t_near, t_far = np.minimum(t1, t2), np.maximum(t1, t2)
-    ax = np.argmax(t_near, axis=1)
-    t_in = t_near[np.arange(n), ax]
-    hit = (t_in < t_far.min(axis=1)) & (t_in > 0)
-    plus = d_l[np.arange(n), ax] < 0  # a ray going towards -axis enters through the + face
-    return t_in, hit, b.face0 + 2 * ax + plus, rot[:, ax].T * np.where(plus, 1.0, -1.0)[:, None]
+    o_l = rot.T @ (o - b.centre)
+    d_l = dirs if b.yaw == 0.0 else _lin(dirs, rot)  # furniture is mostly axis-aligned
+    near, far = [], []
+    for k in range(3):
+        inv = 1.0 / d_l[:, k]
+        t1, t2 = (-b.half[k] - o_l[k]) * inv, (b.half[k] - o_l[k]) * inv
+        near.append(np.minimum(t1, t2))
+        far.append(np.maximum(t1, t2))
+    t_in = np.maximum(np.maximum(near[0], near[1]), near[2])
+    hit = (t_in < np.minimum(np.minimum(far[0], far[1]), far[2])) & (t_in > 0)
+
+    def surface(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n0, n1, n2 = near[0][mask], near[1][mask], near[2][mask]
+        a = np.where((n0 >= n1) & (n0 >= n2), 0, np.where(n1 >= n2, 1, 2))  # the entry axis
+        plus = d_l[mask][np.arange(len(a)), a] < 0  # going towards -axis: enters the + face
+        local = 2 * a + plus
+        normals = np.stack([-rot[:, 0], rot[:, 0], -rot[:, 1], rot[:, 1], -rot[:, 2], rot[:, 2]])
+        return b.face0 + local, normals[local]
+
+    return t_in, hit, surface
 
 
-def _hit_sphere(s: Sphere, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
+def _hit_sphere(s: Sphere, o: np.ndarray, dirs: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, Surface]:
     oc = o - s.centre
     a, bh = np.einsum("ij,ij->i", dirs, dirs), _lin(dirs, oc)
     disc = bh * bh - a * (oc @ oc - s.radius**2)
     t = (-bh - np.sqrt(disc)) / a
     normal = (o + t[:, None] * dirs - s.centre) / s.radius
-    return t, (disc > 0) & (t > 0), np.full(len(dirs), s.face0), normal
+    return t, (disc > 0) & (t > 0), _surface(np.full(len(dirs), s.face0), normal)
 
 
-def _hit_cylinder(c: Cylinder, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
+def _hit_cylinder(c: Cylinder, o: np.ndarray, dirs: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, Surface]:
     """Side (a quadratic in x, y) and the two caps; the nearest valid of the three."""
     oc = o[:2] - c.centre_xy
     d2 = dirs[:, :2]
@@ -406,23 +555,36 @@ def _hit_cylinder(c: Cylinder, o: np.ndarray, dirs: np.ndarray) -> tuple[np.ndar
         on = (t_c > 0) & (np.einsum("ij,ij->i", xy, xy) <= c.radius**2) & ((o[2] - cap_z) * nz > 0)
         on &= t_c < t
         t[on], face[on], normal[on] = t_c[on], cap_face, (0.0, 0.0, nz)
-    return t, np.isfinite(t), face, normal
+    return t, np.isfinite(t), _surface(face, normal)
+
+
+def _surface(face: np.ndarray, normal: np.ndarray) -> Surface:
+    """``surface(mask)`` of precomputed faces (N,) and normals (N, 3)."""
+    return lambda mask: (face[mask], normal[mask])
 
 
 _HIT = {Box: _hit_box, Sphere: _hit_sphere, Cylinder: _hit_cylinder}
 
 
+Selection = list[tuple[np.ndarray, float]]
+
+
 def cast_rays(scene: Scene, origin: np.ndarray, dirs: np.ndarray,
-              select: Callable[[np.ndarray], np.ndarray | None] | None = None
+              select: Callable[[np.ndarray], Selection] | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest hits of rays ``origin + t * dirs`` (origin (3,), dirs (N, 3)) from inside the room.
 
-    ``select(corners (8, 3))`` may return the indices of the rays that can hit an object inside
-    those bounds (None: all rays); it only saves time. Returns ``t`` (N,) in units of ``dirs``,
-    face id (N,) int and unit normal (N, 3)."""
+    ``select(corners (P, 8, 3))`` may return, per object, the indices of the rays that can hit it
+    inside those bounds and a lower bound on their ``t`` there (default: all rays, 0); it only
+    saves time: objects are tested nearest first, each only on rays whose hit so far lies beyond
+    its lower bound. Returns ``t`` (N,) in units of ``dirs``, face id (N,) int and unit normal
+    (N, 3)."""
     o = np.asarray(origin, np.float64)
     n = len(dirs)
     rows = np.arange(n)
+    prims = (*scene.boxes, *scene.spheres, *scene.cylinders)
+    chosen = [(rows, 0.0)] * len(prims) if select is None else select(scene.corners)
+    order = sorted((i for i in range(len(prims)) if len(chosen[i][0])), key=lambda i: chosen[i][1])
     with np.errstate(divide="ignore", invalid="ignore"):
         # Room: the ray leaves the box through the face with the smallest exit distance.
         t_axis = np.where(dirs > 0, (scene.hi - o) / dirs,
@@ -433,50 +595,69 @@ def cast_rays(scene: Scene, origin: np.ndarray, dirs: np.ndarray,
         face = 2 * axis + positive
         normal = np.zeros((n, 3))
         normal[rows, axis] = np.where(positive, -1.0, 1.0)
-        for prim in (*scene.boxes, *scene.spheres, *scene.cylinders):
-            idx = None if select is None else select(_bounds(prim))
-            if idx is None:
-                idx = rows
+        for i in order:
+            prim, (idx, t_min) = prims[i], chosen[i]
+            if t_min > 0 and len(idx):
+                idx = idx[t[idx] > t_min]
             if len(idx) == 0:
                 continue
-            t_new, hit, f_new, n_new = _HIT[type(prim)](prim, o, dirs[idx])
+            t_new, hit, surface = _HIT[type(prim)](prim, o, dirs[idx])
             better = hit & (t_new < t[idx])
-            sel = idx[better]
-            t[sel], face[sel], normal[sel] = t_new[better], f_new[better], n_new[better]
+            if better.any():
+                sel = idx[better]
+                t[sel] = t_new[better]
+                face[sel], normal[sel] = surface(better)
     return t, face, normal
 
 
 # Pairs of corner indices (12, 2) joined by an edge of a box (see _corners).
 _BOX_EDGES = np.array([(i, i | 1 << a) for a in range(3) for i in range(8) if not i >> a & 1])
+_NO_PIXELS = np.empty(0, np.int64)
 # Depth (metres) of the plane that culling clips boxes with; visible points are much farther.
 NEAR_CLIP = 0.05
 
 
 def _screen_select(T_wc: np.ndarray, intr: Intrinsics
-                   ) -> Callable[[np.ndarray], np.ndarray | None]:
-    """For row-major pixel rays of a camera: the pixels inside the image rectangle bounding the
-    projection of a box given by its corners (8, 3, ordered as :func:`_corners`), clipped by the
-    plane z = NEAR_CLIP in front of the camera (nothing visible is nearer: cameras keep clear of
-    surfaces); an empty array when the box is wholly behind that plane."""
+                   ) -> Callable[[np.ndarray], Selection]:
+    """For row-major pixel rays of a camera (unit z, so ``t`` is the z-depth): per box given by
+    its corners (P, 8, 3, ordered as :func:`_corners`), the pixels inside the image rectangle
+    bounding its projection, clipped by the plane z = NEAR_CLIP in front of the camera (nothing
+    visible is nearer: cameras keep clear of surfaces), and the box's least z-depth; no pixels
+    when the box is wholly behind that plane or off the image."""
     R, c = T_wc[:3, :3], T_wc[:3, 3]
     w, h = intr.width, intr.height
 
-    def select(corners: np.ndarray) -> np.ndarray | None:
-        p = (corners - c) @ R
-        front = p[:, 2] >= NEAR_CLIP
-        if not front.any():
-            return np.empty(0, np.int64)
-        if not front.all():  # add where the box's edges cross the clipping plane
-            i, j = _BOX_EDGES[front[_BOX_EDGES[:, 0]] != front[_BOX_EDGES[:, 1]]].T
-            s = (NEAR_CLIP - p[i, 2]) / (p[j, 2] - p[i, 2])
-            p = np.concatenate([p[front], p[i] + s[:, None] * (p[j] - p[i])])
+    def rectangle(p: np.ndarray) -> np.ndarray:
+        """Pixel bounds (u0, u1, v0, v1) of camera-frame points (M, 3), all in front."""
         u = intr.fx * p[:, 0] / p[:, 2] + intr.cx
         v = intr.fy * p[:, 1] / p[:, 2] + intr.cy
-        u0, u1 = max(int(np.floor(u.min())), 0), min(int(np.ceil(u.max())), w - 1)
-        v0, v1 = max(int(np.floor(v.min())), 0), min(int(np.ceil(v.max())), h - 1)
-        if u0 > u1 or v0 > v1:
-            return np.empty(0, np.int64)
-        return (np.arange(v0, v1 + 1)[:, None] * w + np.arange(u0, u1 + 1)).ravel()
+        return np.array([u.min(), u.max(), v.min(), v.max()])
+
+    def select(corners: np.ndarray) -> Selection:
+        p = (corners - c) @ R                                             # (P, 8, 3)
+        front = p[:, :, 2] >= NEAR_CLIP
+        # All corners in front (most boxes): the projected rectangles in one go.
+        z = np.where(front, p[:, :, 2], 1.0)
+        u = intr.fx * p[:, :, 0] / z + intr.cx
+        v = intr.fy * p[:, :, 1] / z + intr.cy
+        bounds = np.stack([u.min(1), u.max(1), v.min(1), v.max(1)], 1)
+        for i in np.flatnonzero(front.any(1) & ~front.all(1)):
+            # Partly behind the clipping plane: add where the box's edges cross it.
+            q, f = p[i], front[i]
+            j, k = _BOX_EDGES[f[_BOX_EDGES[:, 0]] != f[_BOX_EDGES[:, 1]]].T
+            s = (NEAR_CLIP - q[j, 2]) / (q[k, 2] - q[j, 2])
+            bounds[i] = rectangle(np.concatenate([q[f], q[j] + s[:, None] * (q[k] - q[j])]))
+        u0 = np.maximum(np.floor(bounds[:, 0]), 0).astype(np.int64)
+        u1 = np.minimum(np.ceil(bounds[:, 1]), w - 1).astype(np.int64)
+        v0 = np.maximum(np.floor(bounds[:, 2]), 0).astype(np.int64)
+        v1 = np.minimum(np.ceil(bounds[:, 3]), h - 1).astype(np.int64)
+        visible = front.any(1) & (u0 <= u1) & (v0 <= v1)
+        z_min = np.maximum(p[:, :, 2].min(1), NEAR_CLIP)  # z is linear: least at a corner
+        out: Selection = [(_NO_PIXELS, np.inf)] * len(p)
+        for i in np.flatnonzero(visible):
+            pixels = (np.arange(v0[i], v1[i] + 1)[:, None] * w + np.arange(u0[i], u1[i] + 1))
+            out[i] = (pixels.ravel(), float(z_min[i]))
+        return out
 
     return select
 
@@ -603,11 +784,20 @@ def rotation_from_angles(angles: np.ndarray) -> np.ndarray:
 
 def motion_steps(T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame translation (N-1,) in metres and rotation (N-1,) in degrees of poses (N, 4, 4)."""
+    return pair_motion(T_wc, 1)
+
+
+def pair_motion(T_wc: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (N-k,) in metres and rotation (N-k,) in degrees between frames t and t + k of
+    poses (N, 4, 4), for every t."""
     T_wc = np.asarray(T_wc, np.float64)
-    trans = np.linalg.norm(np.diff(T_wc[:, :3, 3], axis=0), axis=1)
-    rel = np.einsum("nji,njk->nik", T_wc[:-1, :3, :3], T_wc[1:, :3, :3])
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
-    return trans, np.degrees(np.arccos(cos))
+    trans = np.linalg.norm(T_wc[k:, :3, 3] - T_wc[:-k, :3, 3], axis=1)
+    rel = np.einsum("nji,njk->nik", T_wc[:-k, :3, :3], T_wc[k:, :3, :3])
+    # The angle from the skew part (atan2) stays accurate for the small rotations of tremor.
+    sin = np.linalg.norm(np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0],
+                                   rel[:, 1, 0] - rel[:, 0, 1]], axis=1), axis=1) / 2
+    cos = (np.trace(rel, axis1=1, axis2=2) - 1) / 2
+    return trans, np.degrees(np.arctan2(sin, cos))
 
 
 def _time_step(steps: Callable[[float], np.ndarray], target: float) -> float:
@@ -622,10 +812,41 @@ def _time_step(steps: Callable[[float], np.ndarray], target: float) -> float:
     return dt
 
 
-def _poses(pos: _Sinusoids, ang: _Sinusoids, dt_pos: float, dt_ang: float, n: int) -> np.ndarray:
+# Hand tremor: sinusoids per camera axis with periods of 2.5-12 frames at 30 fps (physiological
+# tremor and the shake of a handheld camera), bounded, so it adds to every step but not to the
+# rotation between frames far apart. Camera-frame axes x (tilt), y (pan), z (roll: less).
+TREMOR_TERMS = 8
+TREMOR_FREQ = (0.5, 2.5)  # radians per frame
+TREMOR_AXES = (1.0, 1.0, 0.5)
+
+
+def _tremor(rng: np.random.Generator, rms_deg: float) -> _Sinusoids:
+    """Rotation vectors (camera frame, radians) of a tremor with ``rms_deg`` per axis (x, y), as a
+    function of the frame index."""
+    amp = rng.uniform(0.5, 1.5, (3, TREMOR_TERMS))
+    amp *= np.radians(rms_deg) * np.array(TREMOR_AXES)[:, None] / np.sqrt(
+        (amp**2).sum(1, keepdims=True) / 2)
+    return _Sinusoids(np.zeros(3), amp, rng.uniform(*TREMOR_FREQ, (3, TREMOR_TERMS)),
+                      rng.uniform(0, 2 * np.pi, (3, TREMOR_TERMS)))
+
+
+def _rotvec_matrices(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of rotation vectors (N, 3) (Rodrigues)."""
+    theta = np.linalg.norm(v, axis=1)[:, None, None]
+    k = v / np.maximum(theta[:, :, 0], 1e-300)
+    z = np.zeros(len(v))
+    K = np.stack([np.stack([z, -k[:, 2], k[:, 1]], 1), np.stack([k[:, 2], z, -k[:, 0]], 1),
+                  np.stack([-k[:, 1], k[:, 0], z], 1)], 1)
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+
+
+def _poses(pos: _Sinusoids, ang: _Sinusoids, dt_pos: float, dt_ang: float, n: int,
+           tremor: _Sinusoids | None = None) -> np.ndarray:
     i = np.arange(n, dtype=np.float64)
     T = np.tile(np.eye(4), (n, 1, 1))
     T[:, :3, :3] = rotation_from_angles(ang(i * dt_ang))
+    if tremor is not None:
+        T[:, :3, :3] = T[:, :3, :3] @ _rotvec_matrices(tremor(i))
     T[:, :3, 3] = pos(i * dt_pos)
     return T
 
@@ -677,6 +898,7 @@ def camera_paths(cfg: SynthConfig) -> dict[str, np.ndarray]:
                       np.array([[a_off], [a_off * 0.6], [a_off * 0.3]]),
                       rng.uniform(0.3, 0.8, (3, 1)), rng.uniform(0, 2 * np.pi, (3, 1)))
     specs.append((specs[0][0].plus(wobble), specs[0][1].plus(turn), 0))
+    tremor_rng = np.random.default_rng([cfg.seed, 2])
     paths: dict[str, np.ndarray] = {}
     dts: list[tuple[float, float]] = []
     for name, (pos, ang, like) in zip(names, specs):
@@ -685,11 +907,12 @@ def camera_paths(cfg: SynthConfig) -> dict[str, np.ndarray]:
             dt_pos = _time_step(
                 lambda dt, p=pos, a=ang, n=n: motion_steps(_poses(p, a, dt, 0, n))[0], cfg.step_m)
             dt_ang = _time_step(
-                lambda dt, p=pos, a=ang, n=n: motion_steps(_poses(p, a, 0, dt, n))[1], cfg.step_deg)
+                lambda dt, p=pos, a=ang, n=n: motion_steps(_poses(p, a, 0, dt, n))[1], cfg.turn_deg)
         else:  # the test path keeps its reference's timing, so views follow the positions
             dt_pos, dt_ang = dts[like]
         dts.append((dt_pos, dt_ang))
-        paths[name] = _as_written(_poses(pos, ang, dt_pos, dt_ang, cfg.frames))
+        tremor = _tremor(tremor_rng, cfg.tremor_deg) if cfg.tremor_deg > 0 else None
+        paths[name] = _as_written(_poses(pos, ang, dt_pos, dt_ang, cfg.frames, tremor))
     return paths
 
 
@@ -705,8 +928,8 @@ def _check_config(cfg: SynthConfig) -> None:
                         f"got {cfg.width}x{cfg.height}")
     if cfg.train_sequences < 2:
         raise UserError(f"need at least 2 training sequences, got {cfg.train_sequences}")
-    if cfg.fps <= 0 or cfg.step_m <= 0 or cfg.step_deg <= 0:
-        raise UserError("fps, step_m and step_deg must be positive")
+    if cfg.fps <= 0 or cfg.step_m <= 0 or cfg.turn_deg <= 0 or cfg.tremor_deg < 0:
+        raise UserError("fps, step_m and turn_deg must be positive, tremor_deg not negative")
 
 
 def _check_output(out: Path, force: bool) -> None:
