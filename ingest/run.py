@@ -2,7 +2,8 @@
 
 Stages: detect each source's kind and check it (intrinsics, first frame) before anything is
 written -> prepare frames in a small thread pool (copy bytes, or undistort/resize/re-encode) ->
-write shards in order -> index.parquet -> manifest.json -> rename the temporary folder into place.
+write shards in order -> index.parquet -> wids.json -> manifest.json -> rename the temporary
+folder into place.
 """
 
 from __future__ import annotations
@@ -24,17 +25,17 @@ from relocdepth.ingest.writer import (
     check_output,
     publish,
     temp_folder,
+    wids_descriptor,
     write_index,
-    write_json_atomic,
 )
 
 from relocdepth import __version__
 from relocdepth.errors import UserError
+from relocdepth.fileio import write_json_atomic
+from relocdepth.shardformat import FORMAT, INDEX, MANIFEST, SCHEMA_VERSION, WIDS_DESCRIPTOR
 
 log = logging.getLogger(__name__)
 
-FORMAT = "relocdepth-shards"
-SCHEMA_VERSION = 1
 SEVENSCENES_RGB_INTRINSICS = (525.0, 525.0, 320.0, 240.0, 640, 480)
 # Frames in flight per worker: enough to keep the pool busy, small enough to bound memory.
 PREFETCH_PER_WORKER = 4
@@ -255,9 +256,10 @@ def ingest(sources: list[Path], out: Path, cfg: IngestConfig = IngestConfig(), p
     tmp = temp_folder(out)
     try:
         result = _write_all(plans, tmp, cfg, progress)
-        write_index(result["rows"], tmp / "index.parquet")
+        write_index(result["rows"], tmp / INDEX)
         manifest = _manifest(plans, result, cfg)
-        write_json_atomic(manifest, tmp / "manifest.json")  # last: marks the dataset complete
+        write_json_atomic(tmp / WIDS_DESCRIPTOR, wids_descriptor(manifest["name"], manifest["shards"]))
+        write_json_atomic(tmp / MANIFEST, manifest)  # last: marks the dataset complete
         publish(tmp, out, cfg.force)
     finally:
         if tmp.exists():
@@ -265,7 +267,7 @@ def ingest(sources: list[Path], out: Path, cfg: IngestConfig = IngestConfig(), p
     if manifest["skipped"]:
         log.warning(
             "%d corrupt frame(s) skipped (listed under 'skipped' in %s)",
-            len(manifest["skipped"]), out / "manifest.json",
+            len(manifest["skipped"]), out / MANIFEST,
         )
     return manifest
 

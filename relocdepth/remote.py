@@ -24,10 +24,10 @@ from pathlib import Path
 from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
 
 from relocdepth.errors import UserError
+from relocdepth.shardformat import INDEX, MANIFEST
 
 log = logging.getLogger(__name__)
 
-MANIFEST, INDEX = "manifest.json", "index.parquet"
 _CHUNK = 1 << 20
 
 
