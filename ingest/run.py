@@ -18,6 +18,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from relocdepth.ingest import images, sevenscenes, video
+from relocdepth.ingest.prefetch import background
 from relocdepth.ingest.process import Encoding, Prepared, SequenceProcessor
 from relocdepth.ingest.source import SourcePlan, check_readable, sanitize_name
 from relocdepth.ingest.writer import (
@@ -209,7 +210,9 @@ def _write_all(plans: list[SourcePlan], tmp: Path, cfg: IngestConfig, progress: 
                         return frame, proc.prepare(frame, f"{name}-{frame.index:06d}")
 
                     window = cfg.workers * PREFETCH_PER_WORKER
-                    for frame, prep in _ordered_map(prepare, seq.frames(), pool, window):
+                    # frames are read/decoded in their own thread, prepared in the pool, written here
+                    frames = background(seq.frames(), window)
+                    for frame, prep in _ordered_map(prepare, frames, pool, window):
                         _handle_skip(frame, prep, cfg, skipped)
                         if prep.sample is not None:
                             where = writer.add(prep.sample)
