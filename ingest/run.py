@@ -26,14 +26,20 @@ from relocdepth.ingest.writer import (
     check_output,
     publish,
     temp_folder,
-    wids_descriptor,
     write_index,
 )
 
 from relocdepth import __version__
 from relocdepth.errors import UserError
 from relocdepth.fileio import write_json_atomic
-from relocdepth.shardformat import FORMAT, INDEX, MANIFEST, SCHEMA_VERSION, WIDS_DESCRIPTOR
+from relocdepth.shardformat import (
+    FORMAT,
+    INDEX,
+    MANIFEST,
+    SCHEMA_VERSION,
+    WIDS_DESCRIPTOR,
+    wids_descriptor,
+)
 
 log = logging.getLogger(__name__)
 
@@ -261,7 +267,7 @@ def ingest(sources: list[Path], out: Path, cfg: IngestConfig = IngestConfig(), p
         result = _write_all(plans, tmp, cfg, progress)
         write_index(result["rows"], tmp / INDEX)
         manifest = _manifest(plans, result, cfg)
-        write_json_atomic(tmp / WIDS_DESCRIPTOR, wids_descriptor(manifest["name"], manifest["shards"]))
+        write_json_atomic(tmp / WIDS_DESCRIPTOR, wids_descriptor(manifest))
         write_json_atomic(tmp / MANIFEST, manifest)  # last: marks the dataset complete
         publish(tmp, out, cfg.force)
     finally:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from relocdepth.errors import UserError
-from relocdepth.shardformat import SHARD_PATTERN, WIDS_KIND
+from relocdepth.shardformat import SHARD_PATTERN
 
 BLOCK = 512
 # Fixed member metadata so that the same input gives byte-identical shards (reproducible sha256).
@@ -177,16 +177,6 @@ def write_index(rows: list[dict], path: Path) -> None:
     ])
     cols = {name: [r[name] for r in rows] for name in schema.names}
     pq.write_table(pa.table(cols, schema=schema), path)
-
-
-def wids_descriptor(name: str, shards: list[dict]) -> dict:
-    """The shard list ``wids.ShardListDataset`` reads (URLs relative to the descriptor's folder)."""
-    return {
-        "__kind__": WIDS_KIND,
-        "wids_version": 1,
-        "name": name,
-        "shardlist": [{"url": s["name"], "nsamples": s["samples"], "filesize": s["bytes"]} for s in shards],
-    }
 
 
 def check_output(out: Path, force: bool) -> None:

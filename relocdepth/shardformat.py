@@ -15,9 +15,21 @@ INDEX = "index.parquet"
 WIDS_DESCRIPTOR = "wids.json"  # shard list for webdataset's ``wids.ShardListDataset``
 WIDS_KIND = "wids-shard-index-v1"
 SHARD_PATTERN = "shard-{:06d}.tar"
-SHARD_GLOB = "shard-*.tar"
 # 7-Scenes convention: depth PNGs hold uint16 millimetres, 0 = invalid.
 DEPTH_SCALE = 1000.0
+
+
+def wids_descriptor(manifest: dict) -> dict:
+    """The shard list ``wids.ShardListDataset`` reads, from a manifest (URLs relative to the
+    descriptor's folder, so the dataset folder can move)."""
+    return {
+        "__kind__": WIDS_KIND,
+        "wids_version": 1,
+        "name": manifest["name"],
+        "shardlist": [
+            {"url": s["name"], "nsamples": s["samples"], "filesize": s["bytes"]} for s in manifest["shards"]
+        ],
+    }
 
 
 class TruncatedMember(OSError):
