@@ -110,7 +110,6 @@ class ImageFrames:
 
 
 # -- pure image stages ---------------------------------------------------------------------------
-
 def scale_and_crop(img: np.ndarray, intr: Intrinsics, width: int, height: int, scale: float,
                    fx0: float, fy0: float) -> tuple[np.ndarray, Intrinsics]:
     """Resize the whole image to ``scale x (width, height)``, crop ``width x height`` back.

@@ -23,7 +23,7 @@ from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
 from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
-from relocdepth.ingest.video import VIDEO_SUFFIXES
+from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
 from relocdepth.trajectory import apply_sim3_dict, rotmat_to_quat, sim3_from_dict, tum_lines
 
@@ -104,8 +104,6 @@ def _video_frames(path: Path) -> Iterator[tuple[int, float, np.ndarray]]:
     videos (:func:`relocdepth.ingest.video.iter_video`); a frame that does not decode is skipped
     with a warning (its index is then missing from the names)."""
     import cv2
-
-    from relocdepth.ingest.video import iter_video
 
     n = 0
     for fr in iter_video(path, stride=1, fps_fallback=VIDEO_FPS_FALLBACK):
