@@ -57,7 +57,8 @@ def read_rates(shards: Path) -> tuple[float, float]:
     """Image frames/s: random access by offset (training order) vs streaming every tar member."""
     import webdataset as wds
 
-    from relocdepth.data import ImageFrames, decode_rgb
+    from relocdepth.data import ImageFrames
+    from relocdepth.imageio import decode_rgb
     from relocdepth.sampler import SamplerConfig, TripletSampler
 
     frames = ImageFrames.open(shards)

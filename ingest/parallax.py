@@ -31,10 +31,10 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from relocdepth.ingest.writer import write_json_atomic
 
 from relocdepth.dataset import PARALLAX_FILE, FrameRecord, open_dataset
 from relocdepth.errors import UserError
+from relocdepth.fileio import write_json_atomic
 from relocdepth.twoview import TrackConfig, detect_corners, homography_residual, track_points
 
 log = logging.getLogger(__name__)
@@ -89,7 +89,9 @@ def track_image(data: bytes, cfg: ParallaxConfig) -> TrackImage | None:
                             (8, cv2.IMREAD_REDUCED_GRAYSCALE_8)):
         if width / factor >= cfg.track_width:
             flag = reduced
-    grey = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
+    # A reduced grey decode (cheap), not relocdepth.imageio's full colour one; orientation tags are
+    # ignored here too, so the tracks are in the pixels the intrinsics describe.
+    grey = cv2.imdecode(np.frombuffer(data, np.uint8), flag | cv2.IMREAD_IGNORE_ORIENTATION)
     if grey is None:
         return None
     if grey.shape[1] != cfg.track_width:
@@ -203,7 +205,7 @@ def add_parallax(root: str | Path, cfg: ParallaxConfig = ParallaxConfig(), worke
     entry["file"] = final
     manifest = dict(ds.manifest)
     manifest["parallax"] = entry
-    write_json_atomic(manifest, root / "manifest.json")
+    write_json_atomic(root / "manifest.json", manifest)
     if old is not None and old["file"] != final:
         (root / old["file"]).unlink(missing_ok=True)
     log.info("%s: pair parallax for %d pairs (%d failed) in %s", root, entry["pairs"], entry["failed"], final)

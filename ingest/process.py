@@ -1,9 +1,8 @@
 """Turning one source frame into shard members: copy bytes, or undistort/resize and re-encode.
 
 Images are copied byte-for-byte unless undistortion or a resize is asked (or the source is a
-video, whose frames arrive decoded). Undistortion keeps K as the new camera matrix
-(``initUndistortRectifyMap(K, dist, None, K, ...)``), so the intrinsics do not change; pixels
-that map from outside the source image become black. Depth follows with nearest-neighbour
+video, whose frames arrive decoded). Undistortion (:mod:`relocdepth.ingest.undistort`) keeps K
+as the new camera matrix, so the intrinsics do not change. Depth follows with nearest-neighbour
 sampling (interpolating depth across edges invents surfaces).
 """
 
@@ -18,9 +17,11 @@ import numpy as np
 from relocdepth.ingest.imagecheck import BrokenImage, ext_of, image_size, png_bit_depth, png_size
 from relocdepth.ingest.intrinsics import Calibration
 from relocdepth.ingest.source import Frame, SequencePlan, calibrate
+from relocdepth.ingest.undistort import Undistorter
 from relocdepth.ingest.writer import Sample
 
 from relocdepth.camera import Intrinsics
+from relocdepth.imageio import decode_bgr, decode_unchanged
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,7 @@ class SequenceProcessor:
         self.seq = seq
         self.enc = enc
         self._calibs: dict[tuple[int, int], Calibration] = {seq.frame_size: seq.calibration}
-        self._maps: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._undistort = Undistorter()
         self._lock = threading.Lock()
 
     def calibration(self, size: tuple[int, int]) -> Calibration:
@@ -64,25 +65,10 @@ class SequenceProcessor:
                 self._calibs[size] = calibrate(self.seq.calibration, size[0], size[1], self.seq.name)
             return self._calibs[size]
 
-    def _undistort_maps(self, calib: Calibration) -> tuple[np.ndarray, np.ndarray]:
-        import cv2
-
-        intr = calib.intrinsics
-        size = (intr.width, intr.height)
-        with self._lock:
-            if size not in self._maps:
-                K = intr.K()
-                dist = np.asarray(calib.distortion, dtype=np.float64)
-                self._maps[size] = cv2.initUndistortRectifyMap(K, dist, None, K, size, cv2.CV_16SC2)
-            return self._maps[size]
-
     def _transform(self, img: np.ndarray, calib: Calibration, nearest: bool) -> np.ndarray:
         import cv2
 
-        if calib.distorted:
-            m1, m2 = self._undistort_maps(calib)
-            interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-            img = cv2.remap(img, m1, m2, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        img = self._undistort.apply(img, calib, nearest)
         if self.enc.resize is not None and (img.shape[1], img.shape[0]) != self.enc.resize:
             if nearest:
                 interp = cv2.INTER_NEAREST
@@ -113,8 +99,6 @@ class SequenceProcessor:
         return calib.intrinsics.scaled(*self.enc.resize)
 
     def _image(self, frame: Frame) -> tuple[bytes, str, Calibration]:
-        import cv2
-
         if frame.pixels is not None:  # a decoded video frame
             h, w = frame.pixels.shape[:2]
             calib = self.calibration((w, h))
@@ -132,16 +116,16 @@ class SequenceProcessor:
         reencode = calib.distorted or (self.enc.resize is not None and self.enc.resize != (w, h))
         if not reencode and not self.enc.decode_check:
             return data, ext, calib
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        img = decode_bgr(data)
         if img is None:
             raise Skip(f"cannot decode the {ext} image")
+        if (img.shape[1], img.shape[0]) != (w, h):
+            raise Skip(f"the {ext} header says {w}x{h} but it decodes to {img.shape[1]}x{img.shape[0]}")
         if not reencode:
             return data, ext, calib
         return self._encode(self._transform(img, calib, nearest=False), ext), ext, calib
 
     def _depth(self, path: Path, calib: Calibration) -> bytes:
-        import cv2
-
         data = _read(path, "depth")
         try:
             png_size(data)
@@ -151,7 +135,7 @@ class SequenceProcessor:
             raise Skip(f"depth {path.name}: not a 16-bit PNG")
         if not calib.distorted and self.enc.resize is None:
             return data
-        d = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        d = decode_unchanged(data)
         if d is None:
             raise Skip(f"depth {path.name}: cannot decode")
         if (d.shape[1], d.shape[0]) != (calib.intrinsics.width, calib.intrinsics.height):

@@ -2,7 +2,8 @@
 
 Stages: detect each source's kind and check it (intrinsics, first frame) before anything is
 written -> prepare frames in a small thread pool (copy bytes, or undistort/resize/re-encode) ->
-write shards in order -> index.parquet -> manifest.json -> rename the temporary folder into place.
+write shards in order -> index.parquet -> wids.json -> manifest.json -> rename the temporary
+folder into place.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from relocdepth.ingest.parallax import (
     track_image,
     write_parallax,
 )
+from relocdepth.ingest.prefetch import background
 from relocdepth.ingest.process import Encoding, Prepared, SequenceProcessor
 from relocdepth.ingest.source import SourcePlan, check_readable, sanitize_name
 from relocdepth.ingest.writer import (
@@ -31,16 +33,22 @@ from relocdepth.ingest.writer import (
     publish,
     temp_folder,
     write_index,
-    write_json_atomic,
 )
 
 from relocdepth import __version__
 from relocdepth.errors import UserError
+from relocdepth.fileio import write_json_atomic
+from relocdepth.shardformat import (
+    FORMAT,
+    INDEX,
+    MANIFEST,
+    SCHEMA_VERSION,
+    WIDS_DESCRIPTOR,
+    wids_descriptor,
+)
 
 log = logging.getLogger(__name__)
 
-FORMAT = "relocdepth-shards"
-SCHEMA_VERSION = 1
 SEVENSCENES_RGB_INTRINSICS = (525.0, 525.0, 320.0, 240.0, 640, 480)
 # Frames in flight per worker: enough to keep the pool busy, small enough to bound memory.
 PREFETCH_PER_WORKER = 4
@@ -229,7 +237,9 @@ def _write_all(plans: list[SourcePlan], tmp: Path, cfg: IngestConfig, progress: 
                         return frame, prep, track
 
                     window = cfg.workers * PREFETCH_PER_WORKER
-                    for frame, prep, track in _ordered_map(prepare, seq.frames(), pool, window):
+                    # frames are read/decoded in their own thread, prepared in the pool, written here
+                    frames = background(seq.frames(), window)
+                    for frame, prep, track in _ordered_map(prepare, frames, pool, window):
                         _handle_skip(frame, prep, cfg, skipped)
                         if prep.sample is not None:
                             if parallax is not None:
@@ -280,11 +290,12 @@ def ingest(sources: list[Path], out: Path, cfg: IngestConfig = IngestConfig(), p
     tmp = temp_folder(out)
     try:
         result = _write_all(plans, tmp, cfg, progress)
-        write_index(result["rows"], tmp / "index.parquet")
+        write_index(result["rows"], tmp / INDEX)
         manifest = _manifest(plans, result, cfg)
         if result["parallax_rows"] is not None:
             manifest["parallax"] = write_parallax(result["parallax_rows"], tmp, cfg.parallax_config())
-        write_json_atomic(manifest, tmp / "manifest.json")  # last: marks the dataset complete
+        write_json_atomic(tmp / WIDS_DESCRIPTOR, wids_descriptor(manifest))
+        write_json_atomic(tmp / MANIFEST, manifest)  # last: marks the dataset complete
         publish(tmp, out, cfg.force)
     finally:
         if tmp.exists():
@@ -292,7 +303,7 @@ def ingest(sources: list[Path], out: Path, cfg: IngestConfig = IngestConfig(), p
     if manifest["skipped"]:
         log.warning(
             "%d corrupt frame(s) skipped (listed under 'skipped' in %s)",
-            len(manifest["skipped"]), out / "manifest.json",
+            len(manifest["skipped"]), out / MANIFEST,
         )
     return manifest
 

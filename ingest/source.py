@@ -60,10 +60,16 @@ def natural_key(name: str) -> list:
 
 
 def check_readable(path: Path) -> None:
+    """A UserError unless ``path`` is a regular file or a folder this process may read.
+
+    Opening a FIFO would block and a device is no source, so anything else is refused up front.
+    """
     import os
 
     if not path.exists():
         raise UserError(f"source not found: {path}")
+    if not (path.is_file() or path.is_dir()):
+        raise UserError(f"source not readable: {path} is neither a file nor a folder (a pipe or device?)")
     if not os.access(path, os.R_OK) or (path.is_dir() and not os.access(path, os.X_OK)):
         raise UserError(f"source not readable: {path} (check its permissions)")
 

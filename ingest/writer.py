@@ -10,7 +10,6 @@ where a complete one is expected.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import queue
 import shutil
@@ -20,9 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from relocdepth.errors import UserError
+from relocdepth.shardformat import SHARD_PATTERN
 
 BLOCK = 512
-SHARD_PATTERN = "shard-{:06d}.tar"
 # Fixed member metadata so that the same input gives byte-identical shards (reproducible sha256).
 MEMBER_MTIME = 0
 MEMBER_MODE = 0o644
@@ -178,16 +177,6 @@ def write_index(rows: list[dict], path: Path) -> None:
     ])
     cols = {name: [r[name] for r in rows] for name in schema.names}
     pq.write_table(pa.table(cols, schema=schema), path)
-
-
-def write_json_atomic(obj: dict, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def check_output(out: Path, force: bool) -> None:

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from relocdepth.errors import UserError
-from relocdepth.fileio import atomic_write, write_bytes_atomic
+from relocdepth.fileio import atomic_write, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +47,6 @@ def checkpoint_name(step: int) -> str:
 
 def checkpoint_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / CHECKPOINT_DIR
-
-
-def atomic_write_json(path: Path, obj: Any) -> None:
-    write_bytes_atomic(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
 
 
 def list_checkpoints(run_or_dir: str | Path) -> list[Path]:
@@ -85,7 +81,7 @@ def save_checkpoint(run_dir: str | Path, state: dict[str, Any], keep_last: int =
         "format": POINTER_FORMAT, "format_version": FORMAT_VERSION,
         "checkpoint": path.name, "step": int(meta["step"]), "epoch": int(meta["epoch"]),
     }
-    atomic_write_json(d / POINTER_NAME, pointer)
+    write_json_atomic(d / POINTER_NAME, pointer, sort_keys=True)
     if keep_last > 0:
         for old in list_checkpoints(d)[:-keep_last]:
             old.unlink(missing_ok=True)
@@ -216,7 +212,7 @@ def save_alignment(path_or_run: str | Path | None, alignment: dict) -> None:
     """Store a Sim(3) alignment (JSON-able dict) with the run, tied to the resolved checkpoint."""
     ckpt = resolve_checkpoint(path_or_run)
     obj = {"format": ALIGNMENT_FORMAT, "checkpoint": ckpt.name, "alignment": alignment}
-    atomic_write_json(_alignment_path(ckpt), obj)
+    write_json_atomic(_alignment_path(ckpt), obj, sort_keys=True)
 
 
 def load_for_inference(path_or_run: str | Path | None, device: str = "cpu") -> tuple[Any, dict]:

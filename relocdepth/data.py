@@ -24,7 +24,9 @@ import numpy as np
 
 from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
+from relocdepth.imageio import check_size, decode_rgb
 from relocdepth.sampler import FrameKey, Triplet, TripletSampler
+from relocdepth.shardformat import MemberReader
 
 log = logging.getLogger(__name__)
 
@@ -70,8 +72,7 @@ class ImageFrames:
     def __init__(self, frames: list[TrainFrame], name: str, root: str, manifest_hash: str) -> None:
         self.frames = frames
         self.name, self.root, self.manifest_hash = name, root, manifest_hash
-        self._fds: dict[str, int] = {}
-        self._pid = os.getpid()
+        self._reader = MemberReader()
 
     @classmethod
     def open(cls, shards: str | os.PathLike, split: str = "train") -> ImageFrames:
@@ -98,33 +99,17 @@ class ImageFrames:
 
     def read_image_bytes(self, i: int) -> bytes:
         f = self.frames[i]
-        if os.getpid() != self._pid:  # forked DataLoader worker: open its own descriptors
-            self._fds, self._pid = {}, os.getpid()
-        fd = self._fds.get(f.shard_path)
-        if fd is None:
-            fd = self._fds[f.shard_path] = os.open(f.shard_path, os.O_RDONLY)
-        data = os.pread(fd, f.image_size, f.image_offset)
-        if len(data) != f.image_size:
-            raise OSError(f"shard {f.shard_path} is truncated at {f.key}")
-        return data
+        return self._reader.read(f.shard_path, f.image_offset, f.image_size)
 
-    def __getstate__(self) -> dict:
-        state = dict(self.__dict__)
-        state["_fds"] = {}
-        return state
+    def read_image(self, i: int) -> np.ndarray:
+        """RGB uint8 (H, W, 3) at exactly the size its intrinsics describe (ValueError otherwise:
+        a mismatch is never rescaled silently)."""
+        img = decode_rgb(self.read_image_bytes(i))
+        check_size(img, self.frames[i].intrinsics, self.frames[i].key)
+        return img
 
 
 # -- pure image stages ---------------------------------------------------------------------------
-def decode_rgb(data: bytes) -> np.ndarray:
-    """Encoded PNG/JPEG bytes -> RGB uint8 (H, W, 3); ValueError if undecodable."""
-    import cv2
-
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ValueError("undecodable image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
 def scale_and_crop(img: np.ndarray, intr: Intrinsics, width: int, height: int, scale: float,
                    fx0: float, fy0: float) -> tuple[np.ndarray, Intrinsics]:
     """Resize the whole image to ``scale x (width, height)``, crop ``width x height`` back.
@@ -203,13 +188,10 @@ class TripletData:
         for i, (scale, fx0, fy0) in zip(idx, geo):
             f = self.frames.frames[i]
             try:
-                raw = decode_rgb(self.frames.read_image_bytes(i))
+                raw = self.frames.read_image(i)
             except (OSError, ValueError) as e:
                 return {"skipped": f.key, "error": str(e)}
-            intr = f.intrinsics
-            if (raw.shape[1], raw.shape[0]) != (intr.width, intr.height):
-                intr = intr.scaled(raw.shape[1], raw.shape[0])
-            img, k = scale_and_crop(raw, intr, cfg.width, cfg.height, scale, fx0, fy0)
+            img, k = scale_and_crop(raw, f.intrinsics, cfg.width, cfg.height, scale, fx0, fy0)
             jit = draw_jitter(rng, cfg) if cfg.jitter_per_image else shared
             images.append(img)
             inputs.append(color_jitter(img, jit))

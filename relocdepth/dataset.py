@@ -9,7 +9,6 @@ shared by forked DataLoader workers without seek races.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
@@ -18,15 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from relocdepth import imageio
 from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
+from relocdepth.shardformat import DEPTH_SCALE, INDEX, MANIFEST, MemberReader, TruncatedMember
 
-MANIFEST = "manifest.json"
-INDEX = "index.parquet"
-FORMAT = "relocdepth-shards"
-SCHEMA_VERSION = 1
-# 7-Scenes convention: depth PNGs hold uint16 millimetres, 0 = invalid.
-DEPTH_SCALE = 1000.0
 HASH_CHUNK = 1 << 22
 # Pair parallax table written at ingest (or added later); listed under "parallax" in the manifest.
 PARALLAX_FILE = "parallax.parquet"
@@ -135,8 +130,7 @@ class ShardDataset:
         missing = sorted({r.shard for r in self.records} - names)
         if missing:
             raise UserError(f"{rootp}: the index names shards not in the manifest: {missing[:3]}")
-        self._fds: dict[str, int] = {}
-        self._pid = os.getpid()
+        self._reader = MemberReader()
 
     def __len__(self) -> int:
         return len(self.records)
@@ -164,26 +158,16 @@ class ShardDataset:
         return [os.path.join(self.root, s["name"]) for s in self.manifest["shards"]]
 
     # -- raw member access -------------------------------------------------------------------
-    def _fd(self, shard: str) -> int:
-        if os.getpid() != self._pid:  # forked worker: descriptors are shared, open our own
-            self._fds, self._pid = {}, os.getpid()
-        fd = self._fds.get(shard)
-        if fd is None:
-            path = os.path.join(self.root, shard)
-            try:
-                fd = os.open(path, os.O_RDONLY)
-            except OSError as e:
-                raise UserError(f"cannot open shard {path}: {e.strerror}") from None
-            self._fds[shard] = fd
-        return fd
-
     def _read(self, rec: FrameRecord, offset: int, size: int, what: str) -> bytes:
         if offset < 0:
             raise ValueError(f"frame {rec.key} has no {what}")
-        data = os.pread(self._fd(rec.shard), size, offset)
-        if len(data) != size:
-            raise UserError(f"shard {rec.shard} is truncated (reading {what} of {rec.key})")
-        return data
+        path = self.shard_path(rec)
+        try:
+            return self._reader.read(path, offset, size)
+        except TruncatedMember:
+            raise UserError(f"shard {rec.shard} is truncated (reading {what} of {rec.key})") from None
+        except OSError as e:
+            raise UserError(f"cannot open shard {path}: {e.strerror}") from None
 
     def read_image_bytes(self, rec: FrameRecord) -> bytes:
         """The encoded image (``rec.image_ext``), exactly as stored."""
@@ -199,20 +183,22 @@ class ShardDataset:
         return meta
 
     def read_image(self, rec: FrameRecord) -> np.ndarray:
-        """RGB uint8 (H, W, 3)."""
-        import cv2
-
-        img = cv2.imdecode(np.frombuffer(self.read_image_bytes(rec), np.uint8), cv2.IMREAD_COLOR)
-        if img is None:
-            raise UserError(f"{rec.shard}:{rec.key}.{rec.image_ext} cannot be decoded")
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        """RGB uint8 (H, W, 3), exactly ``rec.intrinsics.width x height`` (orientation tags are
+        ignored, :mod:`relocdepth.imageio`); a decoded size other than that is a UserError."""
+        what = f"{rec.shard}:{rec.key}.{rec.image_ext}"
+        try:
+            img = imageio.decode_rgb(self.read_image_bytes(rec))
+            imageio.check_size(img, rec.intrinsics, what)
+        except imageio.SizeMismatch as e:
+            raise UserError(f"{e}; re-run reloc ingest --force") from None
+        except ValueError:
+            raise UserError(f"{what} cannot be decoded") from None
+        return img
 
     def read_depth(self, rec: FrameRecord) -> np.ndarray:
         """Ground-truth depth, float32 metres (H, W), 0 = invalid. For evaluation only."""
-        import cv2
-
         raw = self._read(rec, rec.depth_offset, rec.depth_size, "depth")
-        d = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_UNCHANGED)
+        d = imageio.decode_unchanged(raw)
         if d is None or d.dtype != np.uint16 or d.ndim != 2:
             raise UserError(f"{rec.shard}:{rec.key}.depth.png is not a uint16 depth image")
         return d.astype(np.float32) / DEPTH_SCALE
@@ -226,19 +212,7 @@ class ShardDataset:
         return T.reshape(4, 4)
 
     def close(self) -> None:
-        for fd in self._fds.values():
-            os.close(fd)
-        self._fds = {}
-
-    def __del__(self) -> None:
-        if getattr(self, "_pid", None) == os.getpid():
-            with contextlib.suppress(OSError):
-                self.close()
-
-    def __getstate__(self) -> dict:  # picklable for spawned workers: descriptors are per process
-        state = dict(self.__dict__)
-        state["_fds"] = {}
-        return state
+        self._reader.close()
 
 
 def describe(ds: ShardDataset) -> dict:

@@ -21,17 +21,19 @@ import numpy as np
 
 from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
+from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
+from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
 from relocdepth.trajectory import apply_sim3_dict, rotmat_to_quat, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
-VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 SEVENSCENES_COLOR = ".color.png"
 DEPTH_PNG_SCALE = 1000.0  # 16-bit depth PNGs hold depth x 1000 (millimetres once aligned)
 FORMATS = ("json", "tum")
+VIDEO_FPS_FALLBACK = 30.0  # frame rate for timestamps when a container has neither times nor a rate
 
 
 @dataclass(frozen=True)
@@ -80,7 +82,7 @@ def expand_inputs(inputs: list[str | Path]) -> list[tuple[str, Path]]:
             out += [("image", q) for q in imgs]
         elif not p.exists():
             raise UserError(f"input {p} does not exist")
-        elif p.suffix.lower() in VIDEO_EXTS:
+        elif p.suffix.lower() in VIDEO_SUFFIXES:
             out.append(("video", p))
         elif p.suffix.lower() in IMAGE_EXTS or cv2.haveImageReader(str(p)):
             out.append(("image", p))
@@ -90,33 +92,26 @@ def expand_inputs(inputs: list[str | Path]) -> list[tuple[str, Path]]:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """RGB uint8 (H, W, 3); UserError if it cannot be decoded."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise UserError(f"cannot read image {path} (missing, truncated or not an image)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
-def _video_frames(path: Path) -> Iterator[tuple[float, np.ndarray]]:
-    import cv2
-
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise UserError(f"cannot open video {path}")
-    fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
-    n = 0
+    """RGB uint8 (H, W, 3), orientation tags ignored; UserError if it cannot be decoded."""
     try:
-        while True:
-            ok, bgr = cap.read()
-            if not ok:
-                break
-            ts = n / fps if fps > 0 else float(n)
-            yield ts, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-            n += 1
-    finally:
-        cap.release()
+        return read_rgb(path)
+    except (OSError, ValueError):
+        raise UserError(f"cannot read image {path} (missing, truncated or not an image)") from None
+
+
+def _video_frames(path: Path) -> Iterator[tuple[int, float, np.ndarray]]:
+    """(frame index, container timestamp, RGB) of every frame, read as ``reloc ingest`` reads
+    videos (:func:`relocdepth.ingest.video.iter_video`); a frame that does not decode is skipped
+    with a warning (its index is then missing from the names)."""
+    import cv2
+
+    n = 0
+    for fr in iter_video(path, stride=1, fps_fallback=VIDEO_FPS_FALLBACK):
+        if fr.pixels is None:
+            log.warning("%s: frame %d does not decode; skipped", path, fr.index)
+            continue
+        n += 1
+        yield fr.index, fr.timestamp, cv2.cvtColor(fr.pixels, cv2.COLOR_BGR2RGB)
     if n == 0:
         raise UserError(f"video {path} has no frames (empty or undecodable)")
 
@@ -130,26 +125,25 @@ def iter_frames(items: list[tuple[str, Path]]) -> Iterator[Frame]:
             yield Frame(name, str(path), float(n_images), read_image(path))
             n_images += 1
         else:
-            for i, (ts, img) in enumerate(_video_frames(path)):
+            for i, ts, img in _video_frames(path):
                 yield Frame(f"{path.stem}-{i:06d}", str(path), ts, img)
 
 
 class Calibrated:
-    """Query intrinsics from --K (a calibration file, undistorting when it has distortion)."""
+    """Query intrinsics from --K (a calibration file); distortion is removed as ingest removes it
+    (:class:`relocdepth.ingest.undistort.Undistorter`, K kept as the new camera matrix)."""
 
     def __init__(self, K_file: str | Path) -> None:
         from relocdepth.ingest.intrinsics import load_calibration
+        from relocdepth.ingest.undistort import Undistorter
 
         self.calib = load_calibration(K_file)
+        self.undistorter = Undistorter()
 
     def apply(self, image: np.ndarray) -> tuple[np.ndarray, Intrinsics]:
-        import cv2
-
         h, w = image.shape[:2]
         cal = self.calib.for_frame_size(w, h)
-        if cal.distorted:
-            image = cv2.undistort(image, cal.intrinsics.K(), np.asarray(cal.distortion))
-        return image, cal.intrinsics
+        return self.undistorter.apply(image, cal), cal.intrinsics
 
 
 def _record(frame: Frame, index: int, T: np.ndarray, pred: Prediction, i: int, aligned: bool) -> dict:

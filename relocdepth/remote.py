@@ -24,10 +24,11 @@ from pathlib import Path
 from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
 
 from relocdepth.errors import UserError
+from relocdepth.fileio import write_json_atomic
+from relocdepth.shardformat import INDEX, MANIFEST, WIDS_DESCRIPTOR, wids_descriptor
 
 log = logging.getLogger(__name__)
 
-MANIFEST, INDEX = "manifest.json", "index.parquet"
 _CHUNK = 1 << 20
 
 
@@ -94,6 +95,7 @@ def fetch_dataset(url: str, root: Path | None = None, progress: bool = True) -> 
                     raise UserError(f"{_join(url, name)}: {n} bytes, sha256 {got[:12]}..., but the "
                                     f"manifest says {size} bytes, {sha[:12]}...; the remote dataset is damaged")
                 bar.advance(task, n)
+        write_json_atomic(tmp / WIDS_DESCRIPTOR, wids_descriptor(manifest))  # derived, not fetched
         if dest.exists():
             shutil.rmtree(dest, ignore_errors=True)
         try:

@@ -36,6 +36,7 @@ from relocdepth.distributed import (
     shutdown_distributed,
 )
 from relocdepth.errors import UserError
+from relocdepth.fileio import write_json_atomic
 from relocdepth.sampler import PairParallax, SamplerConfig, TripletSampler
 from relocdepth.trainlog import TrainLog
 
@@ -317,10 +318,10 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
                           find_unused_parameters=cfg.bootstrap != "off")
     if dist.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        ckpt_io.atomic_write_json(run_dir / CONFIG_NAME, {
+        write_json_atomic(run_dir / CONFIG_NAME, {
             "tool_version": relocdepth.__version__, "shards": str(shards), "world_size": dist.world_size,
             "train": cfg.to_dict(), "method": asdict(method_cfg), "model": asdict(model_cfg),
-        })
+        }, sort_keys=True)
     total = _total_steps(sampler, cfg)
     tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs)
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,

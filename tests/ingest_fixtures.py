@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import cv2
@@ -72,3 +73,13 @@ def write_K(path: Path, size=(64, 48), distortion=None, f: float = 60.0) -> Path
     w, h = size
     write_intrinsics_yaml(path, Intrinsics(f, f, w / 2 - 0.5, h / 2 - 0.5, w, h), distortion)
     return path
+
+
+def with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """``jpeg`` with a minimal APP1 Exif segment (one IFD0 entry: Orientation) right after SOI,
+    as phone cameras write it (6 = "rotate 90 degrees clockwise to display")."""
+    assert jpeg[:2] == b"\xff\xd8"
+    entry = struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0)  # tag, SHORT, count 1, value, pad
+    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1) + entry + struct.pack("<I", 0)
+    payload = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + jpeg[2:]
