@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from relocdepth import checkpoint as ckpt_io
-from relocdepth.errors import UserError
+from relocdepth.errors import TrainingDiverged, UserError
 
 torch.set_num_threads(1)
 
@@ -250,7 +250,7 @@ def test_nonfinite_losses_skip_then_stop(synth_shards: Path, tmp_path: Path, mon
     run = tmp_path / "b"
     shutil.copytree(tmp_path / "a", run)
     before = _weights(run)
-    with pytest.raises(UserError, match="diverged: 3 non-finite"):
+    with pytest.raises(TrainingDiverged, match="diverged: 3 non-finite"):
         T.train(synth_shards, run, _cfg(max_steps=20, max_nonfinite=3, resume=True))
     assert [p.name for p in ckpt_io.list_checkpoints(run)] == ["ckpt-00000003.pt"]  # last good one
     after = _weights(run)
