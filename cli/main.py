@@ -63,6 +63,18 @@ def _register() -> None:
                 raise
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A stream handler that writes to whatever ``sys.stderr`` is at the time of each record."""
+
+    @property  # type: ignore[override]
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def setup_logging() -> None:
     """INFO on rank 0 (or a single process), WARNING on the other torchrun ranks.
 
@@ -83,7 +95,7 @@ def setup_logging() -> None:
         handler = RichHandler(console=stderr_console(), show_path=False, markup=False)
         fmt = who + "%(name)s: %(message)s"
     else:
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _StderrHandler()
         fmt = "%(asctime)s %(levelname)s " + who + "%(name)s: %(message)s"
     handler.setFormatter(logging.Formatter(fmt))
     root = logging.getLogger()

@@ -36,7 +36,7 @@ class EvalConfig:
 
     batch_size: int = 16
     depth_range: tuple[float, float] = M.DEPTH_RANGE  # Table II / monodepth2: 0.1-10 m
-    relative_k: int = 5  # relative pose between frames this far apart (issue 6's table)
+    relative_k: int = 5  # relative pose between frames this far apart (the quality table)
     strip_frames: int = 6  # rows of the image | depth | GT plot
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     # Sequences to test on instead of the shards' test split (the rest fit the Sim(3)): e.g. a

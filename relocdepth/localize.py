@@ -1,7 +1,9 @@
 """Localize single images: pose (+ confidence) and depth from a trained checkpoint.
 
 Inputs are image files, folders of images (natural order; in a 7-Scenes sequence folder only
-the ``.color.png`` frames) or videos. Each image goes through :class:`Predictor` in batches.
+the ``.color.png`` frames) or videos. Each image goes through :class:`Predictor` in batches;
+each batch's output can be handed on as soon as it is done (``reloc localize`` streams JSON
+lines to stdout), and progress goes to stderr.
 With a stored alignment (``reloc evaluate --save-alignment``) poses are mapped into the
 ground-truth frame (metres) and depth is scaled to metres; without one, they are in the
 networks' own frame and units.

@@ -15,6 +15,18 @@ from relocdepth.distributed import check_device, pick_device
 from relocdepth.errors import TrainingDiverged, UserError
 
 
+@pytest.fixture(autouse=True)
+def keep_logging():
+    """main() sets up logging for a process; put back the test session's."""
+    import logging
+
+    root = logging.getLogger()
+    saved = (root.level, list(root.handlers))
+    yield
+    root.handlers[:] = saved[1]
+    root.setLevel(saved[0])
+
+
 def invoke(*args: str):
     return CliRunner().invoke(app, list(args))
 
