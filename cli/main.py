@@ -32,6 +32,9 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
+# Environment variable that sets the log level of every rank (default: INFO on rank 0 only).
+LOG_LEVEL_ENV = "RELOCDEPTH_LOG_LEVEL"
+
 # Command modules, in the order a user meets them; each defines its command on `app`.
 COMMAND_MODULES = ("synth", "ingest", "inspect", "train", "localize", "evaluate", "demo")
 
@@ -76,7 +79,8 @@ class _StderrHandler(logging.StreamHandler):
 
 
 def setup_logging() -> None:
-    """INFO on rank 0 (or a single process), WARNING on the other torchrun ranks.
+    """INFO on rank 0 (or a single process), WARNING on the other torchrun ranks; the
+    environment variable ``RELOCDEPTH_LOG_LEVEL`` (e.g. ``INFO``, ``DEBUG``) sets every rank's.
 
     On a terminal the lines go through rich's handler on the same console as the progress
     bars, so a log line is printed above a bar instead of through it. Without a terminal
@@ -86,7 +90,12 @@ def setup_logging() -> None:
     from relocdepth.progress import stderr_console, stderr_is_terminal
 
     rank = int(os.environ.get("RANK", "0") or 0)
-    level = logging.INFO if rank == 0 else logging.WARNING
+    level: int | str = logging.INFO if rank == 0 else logging.WARNING
+    if os.environ.get(LOG_LEVEL_ENV):
+        level = os.environ[LOG_LEVEL_ENV].strip().upper()
+        if not isinstance(logging.getLevelName(level), int):
+            raise UserError(f"{LOG_LEVEL_ENV}={level} is not a logging level "
+                            "(DEBUG, INFO, WARNING, ERROR)")
     who = f"[rank {rank}] " if rank else ""
     handler: logging.Handler
     if stderr_is_terminal():
@@ -107,7 +116,11 @@ def setup_logging() -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point: runs the command and maps the outcome to the exit code."""
-    setup_logging()
+    try:
+        setup_logging()
+    except UserError as e:
+        typer.echo(f"error: {e}", err=True)
+        sys.exit(EXIT_USER_ERROR)
     _register()
     try:
         # standalone_mode=False lets every outcome reach this function (click's standalone mode

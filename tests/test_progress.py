@@ -14,6 +14,7 @@ from relocdepth.cli.main import app, setup_logging
 from typer.testing import CliRunner
 
 from relocdepth import progress as P
+from relocdepth.errors import UserError
 from relocdepth.trainlog import TrainLog
 
 
@@ -163,6 +164,13 @@ def test_logging_rank_and_handler(monkeypatch: pytest.MonkeyPatch) -> None:
         assert root.level == logging.WARNING
         assert len(root.handlers) == 1 and not isinstance(root.handlers[0], RichHandler)
         assert "[rank 1]" in root.handlers[0].formatter._fmt
+        monkeypatch.setenv("RELOCDEPTH_LOG_LEVEL", "info")  # every rank, on request
+        setup_logging()
+        assert root.level == logging.INFO
+        monkeypatch.setenv("RELOCDEPTH_LOG_LEVEL", "loud")
+        with pytest.raises(UserError, match="RELOCDEPTH_LOG_LEVEL=LOUD is not a logging level"):
+            setup_logging()
+        monkeypatch.delenv("RELOCDEPTH_LOG_LEVEL")
         monkeypatch.setenv("RANK", "0")
         monkeypatch.setattr(P, "stderr_is_terminal", lambda: True)
         setup_logging()
