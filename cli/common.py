@@ -1,4 +1,4 @@
-"""What every command shares: turning user mistakes into one line and exit code 2."""
+"""What every command shares: exit codes for user mistakes and divergence, size and device options."""
 
 from __future__ import annotations
 
@@ -9,13 +9,19 @@ from typing import TypeVar
 
 import typer
 
-from relocdepth.errors import UserError
+from relocdepth.errors import EXIT_DIVERGED, EXIT_USER_ERROR, TrainingDiverged, UserError
 
 F = TypeVar("F", bound=Callable)
 
+# The one --device grammar of train, localize and evaluate (same default everywhere).
+DEVICE_METAVAR = "auto|cpu|cuda|cuda:N"
+DEVICE_DEFAULT = "auto"
+DEVICE_HELP = "auto (a CUDA GPU when there is one, else the CPU), cpu, cuda or cuda:N (GPU N)."
+
 
 def user_errors(fn: F) -> F:
-    """Decorate a command so that a :class:`UserError` prints ``error: ...`` and exits 2.
+    """Decorate a command: a :class:`UserError` prints ``error: ...`` and exits 2, a
+    :class:`TrainingDiverged` prints ``error: ...`` and exits 3.
 
     Put it *under* ``@app.command()``; ``functools.wraps`` keeps the signature typer reads.
     """
@@ -26,7 +32,10 @@ def user_errors(fn: F) -> F:
             return fn(*args, **kwargs)
         except UserError as e:
             typer.echo(f"error: {e}", err=True)
-            raise typer.Exit(2) from None
+            raise typer.Exit(EXIT_USER_ERROR) from None
+        except TrainingDiverged as e:
+            typer.echo(f"error: {e}", err=True)
+            raise typer.Exit(EXIT_DIVERGED) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -37,3 +46,10 @@ def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
     if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
         raise UserError(f"{option} must look like 640x480 (WIDTHxHEIGHT, positive), got {text!r}")
     return int(m.group(1)), int(m.group(2))
+
+
+def parse_device(text: str) -> str:
+    """``--device`` in the one grammar (``auto|cpu|cuda|cuda:N``), normalised; else a UserError."""
+    from relocdepth.distributed import check_device
+
+    return check_device(text)

@@ -6,7 +6,13 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from relocdepth.cli.common import user_errors
+from relocdepth.cli.common import (
+    DEVICE_DEFAULT,
+    DEVICE_HELP,
+    DEVICE_METAVAR,
+    parse_device,
+    user_errors,
+)
 from relocdepth.cli.main import app
 
 
@@ -15,11 +21,11 @@ from relocdepth.cli.main import app
 def evaluate(
     shards: Annotated[Path, typer.Argument(help="Shard dataset with ground-truth poses (and depth).", show_default=False)],
     checkpoint: Annotated[str | None, typer.Option("--checkpoint", metavar="RUN", help="Run folder or checkpoint file. Default: the newest run under ./runs.")] = None,
-    out: Annotated[Path | None, typer.Option("-o", "--output", metavar="FILE", help="Report JSON. Default: RUN/eval/report.json; TUM files go to trajectories/ beside it.")] = None,
+    out: Annotated[Path | None, typer.Option("-o", "--output", metavar="FILE", help="Report JSON. Default: RUN/eval/report.json; the per-frame errors (REPORT.frames.csv) and TUM files (trajectories/) go beside it.")] = None,
     plots: Annotated[Path | None, typer.Option("--plots", metavar="DIR", help="Folder for the PNG plots. Default: plots/ beside the report.")] = None,
     save_alignment: Annotated[bool, typer.Option("--save-alignment", help="Store the fitted Sim(3) with the run: localize then reports metric poses in the ground-truth frame.")] = False,
     batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 16,
-    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N.")] = "cpu",
+    device: Annotated[str, typer.Option(metavar=DEVICE_METAVAR, help=DEVICE_HELP)] = DEVICE_DEFAULT,
     test_sequences: Annotated[str | None, typer.Option("--test-sequences", metavar="NAMES", help="Comma-separated sequences to test on instead of the test split (the others fit the Sim(3)); e.g. a training sequence, to see whether the networks fit the frames they trained on.")] = None,
 ) -> None:
     """Sim(3)-aligned pose errors, depth metrics and baselines (JSON report, TUM files, plots)."""
@@ -28,7 +34,7 @@ def evaluate(
     from relocdepth.report import format_table
 
     report = run_evaluate(shards, checkpoint, EvalConfig(
-        batch_size=batch_size, device=device,
+        batch_size=batch_size, device=parse_device(device),
         test_sequences=tuple(n.strip() for n in (test_sequences or "").split(",") if n.strip())),
                           report_path=out, plots_dir=plots, save_alignment=save_alignment)
     typer.echo(format_table(report))

@@ -2,12 +2,25 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from relocdepth.cli.common import user_errors
+from relocdepth.cli.common import (
+    DEVICE_DEFAULT,
+    DEVICE_HELP,
+    DEVICE_METAVAR,
+    parse_device,
+    user_errors,
+)
 from relocdepth.cli.main import app
+
+
+class PoseFormat(str, Enum):
+    json = "json"
+    tum = "tum"
+
 
 INPUTS_HELP = (
     "Image files, folders of images (natural order; in a 7-Scenes sequence folder only the "
@@ -27,10 +40,10 @@ def localize(
     checkpoint: Annotated[str | None, typer.Option("--checkpoint", metavar="RUN", help="Run folder or checkpoint file. Default: the newest run under ./runs.")] = None,
     K: Annotated[str | None, typer.Option("--K", metavar="FILE", help=K_HELP)] = None,
     depth_out: Annotated[Path | None, typer.Option("--depth-out", metavar="DIR", help="Write <name>.depth.png (uint16, depth x 1000: millimetres once aligned) and <name>.depth_preview.png here.")] = None,
-    fmt: Annotated[str, typer.Option("--format", metavar="json|tum", help="JSON lines (one object per image) or a TUM trajectory (timestamp tx ty tz qx qy qz qw).")] = "json",
+    fmt: Annotated[PoseFormat, typer.Option("--format", help="JSON lines (one object per image) or a TUM trajectory (timestamp tx ty tz qx qy qz qw).")] = PoseFormat.json,
     output: Annotated[Path | None, typer.Option("--output", "-o", metavar="FILE", help="Write the poses to FILE instead of stdout.")] = None,
     batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 8,
-    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N.")] = "cpu",
+    device: Annotated[str, typer.Option(metavar=DEVICE_METAVAR, help=DEVICE_HELP)] = DEVICE_DEFAULT,
 ) -> None:
     """World-from-camera pose, confidence and depth of each image from a trained run."""
     from relocdepth.localize import LocalizeConfig
@@ -38,11 +51,12 @@ def localize(
 
     cfg = LocalizeConfig(
         checkpoint=checkpoint, K_file=K, depth_out=str(depth_out) if depth_out else None,
-        format=fmt, output=str(output) if output else None, batch_size=batch_size, device=device,
+        format=fmt.value, output=str(output) if output else None, batch_size=batch_size,
+        device=parse_device(device),
     )
-    records, text = run_localize(inputs, cfg)
-    if output is None:
-        typer.echo(text, nl=False)
-    else:
+    # Printing to stdout: each batch's lines go out as soon as the batch is done.
+    echo = (lambda text: typer.echo(text, nl=False)) if output is None else None
+    records, _ = run_localize(inputs, cfg, on_text=echo)
+    if output is not None:
         aligned = "metres, ground-truth frame" if records and records[0]["aligned"] else "network frame"
         typer.echo(f"{output}: {len(records)} pose(s) ({aligned})")

@@ -6,10 +6,17 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from relocdepth.cli.common import parse_size, user_errors
+from relocdepth.cli.common import (
+    DEVICE_DEFAULT,
+    DEVICE_HELP,
+    DEVICE_METAVAR,
+    parse_device,
+    parse_size,
+    user_errors,
+)
 from relocdepth.cli.main import app
 
-from relocdepth.errors import UserError
+from relocdepth.errors import EXIT_INTERRUPTED, UserError
 
 
 def _schedule(text: str | None) -> tuple[tuple[int, int], ...]:
@@ -38,6 +45,7 @@ _CONVERT = {
     "no_lcvs": ("lcvs", lambda v: not v),
     "no_dsc": ("use_dsc", lambda v: not v),
     "pretrained": ("pretrained", lambda v: None if v is None or v.lower() == "none" else v),
+    "device": ("device", parse_device),
 }
 
 
@@ -66,7 +74,7 @@ def train(
     size: Annotated[str, typer.Option(help="Network input WxH, multiples of 32 (paper: 640x480).")] = "640x480",
     lr: Annotated[float, typer.Option(help="Adam learning rate (paper: 1e-4, betas 0.9/0.999).")] = 1e-4,
     workers: Annotated[int, typer.Option(help="DataLoader worker processes decoding frames (0: in the training process).")] = 2,
-    device: Annotated[str, typer.Option(help="auto (CUDA when available), cpu or cuda.")] = "auto",
+    device: Annotated[str, typer.Option(metavar=DEVICE_METAVAR, help=DEVICE_HELP)] = DEVICE_DEFAULT,
     amp: Annotated[bool, typer.Option("--amp", help="Mixed precision (autocast) on CUDA or CPU.")] = False,
     amp_dtype: Annotated[str, typer.Option("--amp-dtype", help="Autocast type with --amp: bf16 or fp16 (loss scaling).")] = "bf16",
     channels_last: Annotated[bool, typer.Option("--channels-last", help="channels_last memory format (CUDA).")] = False,
@@ -118,4 +126,4 @@ def train(
             f"stop: {summary['stop']}); checkpoint {summary['checkpoint']}"
         )
         if summary["stop"] == "interrupted":
-            raise typer.Exit(130)
+            raise typer.Exit(EXIT_INTERRUPTED)

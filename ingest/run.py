@@ -38,6 +38,7 @@ from relocdepth.ingest.writer import (
 from relocdepth import __version__
 from relocdepth.errors import UserError
 from relocdepth.fileio import write_json_atomic
+from relocdepth.progress import PlainProgress, stderr_console, stderr_is_terminal
 from relocdepth.shardformat import (
     FORMAT,
     INDEX,
@@ -165,7 +166,6 @@ def _ordered_map(fn, items: Iterable, pool: ThreadPoolExecutor, window: int) -> 
 
 
 def _progress():
-    from rich.console import Console
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -178,7 +178,7 @@ def _progress():
     return Progress(
         TextColumn("[bold]ingest[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
         TaskProgressColumn(), TextColumn("{task.fields[fps]:.1f} frames/s"), TimeElapsedColumn(),
-        console=Console(stderr=True), transient=False,
+        console=stderr_console(), transient=False,
     )
 
 
@@ -211,7 +211,8 @@ def _write_all(plans: list[SourcePlan], tmp: Path, cfg: IngestConfig, progress: 
     names = _unique_names(plans)
     total = sum(seq.count for plan in plans for seq in plan.sequences)
     pcfg = cfg.parallax_config() if cfg.pair_parallax else None
-    bar = _progress() if progress else None
+    # Without a terminal (nohup, a log file) a bar is drawn once at the end: plain lines instead.
+    bar = (_progress() if stderr_is_terminal() else PlainProgress("ingest")) if progress else None
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=cfg.workers) as pool:
         if bar is not None:

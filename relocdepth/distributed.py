@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,17 +33,36 @@ class Dist:
         return self.rank == 0
 
 
+DEVICE_CHOICES = ("auto", "cpu", "cuda", "cuda:N")
+_DEVICE_RE = re.compile(r"auto|cpu|cuda(:\d+)?")
+
+
+def check_device(name: str) -> str:
+    """The one ``--device`` grammar: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; UserError otherwise."""
+    text = str(name).strip().lower()
+    if not _DEVICE_RE.fullmatch(text):
+        raise UserError(f"--device must be one of {', '.join(DEVICE_CHOICES)} (N: a GPU index), "
+                        f"not {name!r}")
+    return text
+
+
 def pick_device(name: str, local_rank: int = 0) -> Any:
-    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is a user error."""
+    """``auto`` -> CUDA when available, else CPU; ``cuda`` -> GPU ``local_rank``; ``cuda:N`` -> GPU N.
+
+    Asking for a GPU this torch does not see is a user error, said before anything runs.
+    """
     import torch
 
-    if name not in ("auto", "cpu", "cuda"):
-        raise UserError(f"--device must be auto, cpu or cuda, not {name!r}")
-    if name == "cuda" or (name == "auto" and torch.cuda.is_available()):
-        if not torch.cuda.is_available():
-            raise UserError("--device cuda but this torch sees no CUDA GPU; use --device cpu")
-        return torch.device("cuda", local_rank)
-    return torch.device("cpu")
+    name = check_device(name)
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise UserError(f"--device {name} but this torch sees no CUDA GPU; use --device cpu or auto")
+    index = int(name.split(":")[1]) if ":" in name else local_rank
+    if index >= torch.cuda.device_count():
+        raise UserError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA GPU(s) "
+                        f"(cuda:0 to cuda:{torch.cuda.device_count() - 1})")
+    return torch.device("cuda", index)
 
 
 def init_distributed(device_name: str) -> tuple[Dist, Any]:
@@ -54,6 +74,9 @@ def init_distributed(device_name: str) -> tuple[Dist, Any]:
     if world <= 1:
         return Dist(), pick_device(device_name)
     rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if ":" in check_device(device_name):
+        raise UserError(f"--device {device_name} names one GPU, but under torchrun each rank uses "
+                        "its own (cuda:LOCAL_RANK); give --device cuda or auto")
     device = pick_device(device_name, local)
     if device.type == "cuda":
         torch.cuda.set_device(device)

@@ -1,7 +1,9 @@
 """Localize single images: pose (+ confidence) and depth from a trained checkpoint.
 
 Inputs are image files, folders of images (natural order; in a 7-Scenes sequence folder only
-the ``.color.png`` frames) or videos. Each image goes through :class:`Predictor` in batches.
+the ``.color.png`` frames) or videos. Each image goes through :class:`Predictor` in batches;
+each batch's output can be handed on as soon as it is done (``reloc localize`` streams JSON
+lines to stdout), and progress goes to stderr.
 With a stored alignment (``reloc evaluate --save-alignment``) poses are mapped into the
 ground-truth frame (metres) and depth is scaled to metres; without one, they are in the
 networks' own frame and units.
@@ -13,7 +15,7 @@ import json
 import logging
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,7 +48,7 @@ class LocalizeConfig:
     format: str = "json"  # "json" (one object per line) or "tum"
     output: str | None = None  # file to write; None = the caller prints the lines
     batch_size: int = 8
-    device: str = "cpu"
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,25 @@ def _video_frames(path: Path) -> Iterator[tuple[int, float, np.ndarray]]:
         yield fr.index, fr.timestamp, cv2.cvtColor(fr.pixels, cv2.COLOR_BGR2RGB)
     if n == 0:
         raise UserError(f"video {path} has no frames (empty or undecodable)")
+
+
+def count_frames(items: list[tuple[str, Path]]) -> int | None:
+    """How many frames :func:`iter_frames` will give (videos: the container's count), or None
+    when a video does not say."""
+    import cv2
+
+    n = 0
+    for kind, path in items:
+        if kind == "image":
+            n += 1
+            continue
+        cap = cv2.VideoCapture(str(path))
+        frames = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) if cap.isOpened() else 0
+        cap.release()
+        if frames <= 0:
+            return None
+        n += frames
+    return n
 
 
 def iter_frames(items: list[tuple[str, Path]]) -> Iterator[Frame]:
@@ -199,9 +220,16 @@ class DepthWriter:
 def localize_frames(
     predictor: Predictor, frames: Iterator[Frame], batch_size: int,
     calibrated: Calibrated | None = None, depth: DepthWriter | None = None,
+    on_batch: Callable[[list[dict]], None] | None = None, total: int | None = None,
 ) -> list[dict]:
-    """Localize frames in batches; returns one record per frame (see README, localize)."""
+    """Localize frames in batches; returns one record per frame (see README, localize).
+
+    ``on_batch`` gets each batch's records as soon as the batch is done (streaming output);
+    ``total`` (frames expected, if known) sizes the progress report on stderr.
+    """
     import cv2
+
+    from relocdepth.progress import progress_bar
 
     if batch_size < 1:
         raise UserError("--batch-size must be at least 1")
@@ -221,19 +249,24 @@ def localize_frames(
                 d = cv2.resize(pred.depth[i] * scale, (w, h), interpolation=cv2.INTER_LINEAR)
                 rec |= depth.write(f.name, d)
             records.append(rec)
+        if on_batch is not None:
+            on_batch(records[-len(batch):])
+        bar.advance(task, len(batch))
         batch.clear()
 
-    for f in frames:
-        if calibrated is not None:
-            img, K = calibrated.apply(f.image)
-            f = Frame(f.name, f.source, f.timestamp, img)
-        else:
-            K = predictor.intrinsics_for(f.image.shape[1], f.image.shape[0])
-        batch.append((f, K))
-        if len(batch) >= batch_size:
+    with progress_bar("localize", "images") as bar:
+        task = bar.add_task("", total=total)
+        for f in frames:
+            if calibrated is not None:
+                img, K = calibrated.apply(f.image)
+                f = Frame(f.name, f.source, f.timestamp, img)
+            else:
+                K = predictor.intrinsics_for(f.image.shape[1], f.image.shape[0])
+            batch.append((f, K))
+            if len(batch) >= batch_size:
+                flush()
+        if batch:
             flush()
-    if batch:
-        flush()
     return records
 
 
@@ -247,12 +280,18 @@ def format_records(records: list[dict], fmt: str) -> str:
     raise UserError(f"unknown --format {fmt!r}; use one of {', '.join(FORMATS)}")
 
 
-def localize(inputs: list[str | Path], cfg: LocalizeConfig) -> tuple[list[dict], str]:
+def localize(
+    inputs: list[str | Path], cfg: LocalizeConfig, on_text: Callable[[str], None] | None = None,
+) -> tuple[list[dict], str]:
     """The ``reloc localize`` job: check inputs, predict, write outputs.
 
     Returns (records, text in cfg.format); when ``cfg.output`` is set the text is also written
-    there (atomically). Every input is checked before anything is written.
+    there (atomically). ``on_text`` receives the text of each batch as soon as the batch is
+    done (what ``reloc localize`` prints to stdout). The inputs are listed and the checkpoint
+    and calibration loaded before anything is written; an image that turns out undecodable
+    later stops the job with the lines of the batches before it already streamed.
     """
+    from relocdepth.distributed import pick_device
     from relocdepth.fileio import write_text_atomic
 
     if cfg.format not in FORMATS:
@@ -261,12 +300,14 @@ def localize(inputs: list[str | Path], cfg: LocalizeConfig) -> tuple[list[dict],
         raise UserError("--batch-size must be at least 1")
     items = expand_inputs(inputs)
     calibrated = Calibrated(cfg.K_file) if cfg.K_file else None
-    predictor = Predictor.from_checkpoint(cfg.checkpoint, device=cfg.device)
+    predictor = Predictor.from_checkpoint(cfg.checkpoint, device=str(pick_device(cfg.device)))
     if cfg.output and Path(cfg.output).is_dir():
         raise UserError(f"--output {cfg.output} is a folder; give a file name")
     depth = DepthWriter(cfg.depth_out) if cfg.depth_out else None
     try:
-        records = localize_frames(predictor, iter_frames(items), cfg.batch_size, calibrated, depth)
+        stream = None if on_text is None else (lambda recs: on_text(format_records(recs, cfg.format)))
+        records = localize_frames(predictor, iter_frames(items), cfg.batch_size, calibrated, depth,
+                                  on_batch=stream, total=count_frames(items))
     except BaseException:
         if depth is not None:
             depth.abort()

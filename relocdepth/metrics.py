@@ -14,8 +14,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-# The paper's accuracy thresholds (share within 5 cm / 5 deg and 10 cm / 10 deg).
-POSE_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 10.0))
+# Accuracy thresholds: the paper's 5 cm / 5 deg and 10 cm / 10 deg, and 10 cm / 5 deg, the one
+# ACE and DSAC* report (so figures compare with theirs).
+POSE_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 5.0), (0.10, 10.0))
 # Depth evaluation range in metres (monodepth2's indoor convention, the paper's Table II).
 DEPTH_RANGE = (0.1, 10.0)
 # Thumbnail size (W, H) of the retrieval baseline: small enough to ignore detail and noise.
@@ -65,15 +66,14 @@ def pose_summary(t_err: np.ndarray, r_err: np.ndarray) -> dict:
     n = int(t_err.size)
     out: dict = {"frames": n}
     if n == 0:
-        return out | {"median_t_m": None, "median_r_deg": None, "mean_t_m": None,
-                      "mean_r_deg": None, "pct_5cm_5deg": None, "pct_10cm_10deg": None}
+        return out | {"median_t_m": None, "median_r_deg": None, "mean_t_m": None, "mean_r_deg": None,
+                      **{threshold_key(t, r): None for t, r in POSE_THRESHOLDS}}
     out |= {
         "median_t_m": float(np.median(t_err)), "median_r_deg": float(np.median(r_err)),
         "mean_t_m": float(np.mean(t_err)), "mean_r_deg": float(np.mean(r_err)),
     }
     for t_max, r_max in POSE_THRESHOLDS:
-        key = f"pct_{round(t_max * 100)}cm_{round(r_max)}deg"
-        out[key] = float(100.0 * np.mean((t_err <= t_max) & (r_err <= r_max)))
+        out[threshold_key(t_max, r_max)] = float(100.0 * np.mean((t_err <= t_max) & (r_err <= r_max)))
     return out
 
 
@@ -85,6 +85,45 @@ def pose_summary_by_sequence(
     return {
         s: pose_summary(t_err[seqs == s], r_err[seqs == s]) for s in dict.fromkeys(sequences)
     }
+
+
+def threshold_key(t_max: float, r_max: float) -> str:
+    """``(0.10, 5.0)`` -> ``"pct_10cm_5deg"``, the report's name of that accuracy share."""
+    return f"pct_{round(t_max * 100)}cm_{round(r_max)}deg"
+
+
+def rank_average(x: np.ndarray) -> np.ndarray:
+    """Ranks 1..N of a 1-D array, ties sharing their average rank."""
+    x = np.asarray(x, np.float64)
+    order = np.argsort(x, kind="stable")
+    ranks = np.empty(len(x))
+    ranks[order] = np.arange(1, len(x) + 1)
+    _, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
+    sums = np.bincount(inverse, weights=ranks)
+    return (sums / counts)[inverse]
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> float | None:
+    """Spearman rank correlation of two 1-D arrays (ties averaged); None when undefined
+    (fewer than 3 values, or one of them constant)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape or a.ndim != 1:
+        raise ValueError(f"spearman: shapes {a.shape} vs {b.shape}, want equal 1-D")
+    if a.size < 3:
+        return None
+    ra, rb = rank_average(a) - (a.size + 1) / 2, rank_average(b) - (b.size + 1) / 2
+    denom = np.sqrt(np.sum(ra * ra) * np.sum(rb * rb))
+    return None if denom == 0 else float(np.sum(ra * rb) / denom)
+
+
+def confidence_ranking(confidence: np.ndarray, t_err: np.ndarray, r_err: np.ndarray) -> dict:
+    """How well confidence ranks errors: Spearman of confidence vs translation / rotation error.
+
+    Negative is good (higher confidence, smaller error); -1 is a perfect ranking, 0 none.
+    """
+    c = np.asarray(confidence, np.float64)
+    return {"frames": int(c.size), "median": float(np.median(c)) if c.size else None,
+            "spearman_t": spearman(c, t_err), "spearman_r": spearman(c, r_err)}
 
 
 # ----------------------------------------------------------------------------- alignments

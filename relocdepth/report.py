@@ -11,7 +11,8 @@ def _f(v: float | None, fmt: str) -> str:
 
 def _pose_row(name: str, s: dict) -> str:
     return (f"  {name:<28} {_f(s['median_t_m'], '8.3f')} m {_f(s['median_r_deg'], '7.2f')} deg "
-            f"{_f(s['pct_5cm_5deg'], '8.1f')} % {_f(s['pct_10cm_10deg'], '9.1f')} %")
+            f"{_f(s['pct_5cm_5deg'], '8.1f')} % {_f(s.get('pct_10cm_5deg'), '9.1f')} % "
+            f"{_f(s['pct_10cm_10deg'], '9.1f')} %")
 
 
 def _depth_row(name: str, d: dict) -> str:
@@ -28,7 +29,8 @@ def format_table(report: dict) -> str:
         f"on {ds['path']}: {ds['train_frames']} train / {ds['test_frames']} test frames"),
         "",
         f"pose, test frames, Sim(3) fitted on train (scale {report['alignment']['scale']:.4g})",
-        f"  {'':<28} {'median t':>10} {'median r':>11} {'5cm/5deg':>10} {'10cm/10deg':>11}",
+        (f"  {'':<28} {'median t':>10} {'median r':>11} {'5cm/5deg':>10} {'10cm/5deg':>11} "
+         f"{'10cm/10deg':>11}"),
         _pose_row("relocdepth", pose["test"]),
     ]
     if len(pose["per_sequence"]) > 1:
@@ -54,6 +56,13 @@ def format_table(report: dict) -> str:
         f"rotations {sp['prediction_raw']['rot_median_deg']:.1f} deg vs GT "
         f"{sp['ground_truth']['rot_median_deg']:.1f} deg"
     )
+    conf = report.get("confidence")
+    if conf:
+        lines.append(
+            f"confidence (median {_f(conf['median'], '.3f')}) vs error, Spearman: translation "
+            f"{_f(conf['spearman_t'], '+.2f')}, rotation {_f(conf['spearman_r'], '+.2f')} "
+            "(negative = confidence ranks errors; -1 perfect, 0 not at all)"
+        )
     depth = report.get("depth")
     if depth:
         lines += [
@@ -70,6 +79,8 @@ def format_table(report: dict) -> str:
     if out:
         lines += ["", f"report: {out.get('report')}"]
         lines += [f"plot: {p}" for p in out.get("plots", [])]
+        if out.get("frames_csv"):
+            lines.append(f"per-frame errors (CSV): {out['frames_csv']}")
         if out.get("tum"):
             first = next(iter(out["tum"].values()))
             lines.append(f"trajectories (TUM, for evo_ape): {Path(first['estimate']).parent}")

@@ -35,7 +35,7 @@ from relocdepth.distributed import (
     parameter_digest,
     shutdown_distributed,
 )
-from relocdepth.errors import UserError
+from relocdepth.errors import TrainingDiverged, UserError
 from relocdepth.fileio import write_json_atomic
 from relocdepth.sampler import PairParallax, SamplerConfig, TripletSampler
 from relocdepth.trainlog import TrainLog
@@ -323,7 +323,8 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
             "train": cfg.to_dict(), "method": asdict(method_cfg), "model": asdict(model_cfg),
         }, sort_keys=True)
     total = _total_steps(sampler, cfg)
-    tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs)
+    tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs,
+                    log_every=cfg.log_every)
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
                  method_cfg, model_cfg, tlog, gt_poses)
     return tr, state
@@ -593,8 +594,8 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
 def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfig()) -> dict[str, Any]:
     """Train on ``shards`` into ``run_dir``; returns a summary (steps, stop reason, checkpoint...).
 
-    Raises :class:`UserError` for bad inputs and when the loss diverges (``max_nonfinite``
-    non-finite losses in a row; the last good checkpoint stays the newest).
+    Raises :class:`UserError` for bad inputs and :class:`TrainingDiverged` when the loss diverges
+    (``max_nonfinite`` non-finite losses in a row; the last good checkpoint stays the newest).
     """
     run_dir = Path(run_dir)
     tr, state = setup(shards, run_dir, cfg)
@@ -616,7 +617,7 @@ def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfi
         shutdown_distributed(tr.dist)
     latest = ckpt_io.latest_checkpoint(run_dir) if tr.dist.is_main else None
     if state.stop == "diverged":
-        raise UserError(
+        raise TrainingDiverged(
             f"training diverged: {state.nonfinite_streak} non-finite losses in a row at step {state.step}; "
             f"the last good checkpoint is {latest or 'none'}; try a lower --lr"
         )

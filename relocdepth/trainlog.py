@@ -1,6 +1,8 @@
-"""Where training reports: a JSONL file, TensorBoard when installed, and a rich progress bar.
+"""Where training reports: a JSONL file, TensorBoard when installed, and progress on stderr.
 
-``logs/train.jsonl`` gets one JSON object per line: ``{"kind": "step", ...}`` every N steps (loss,
+Progress is a rich bar when stderr is a terminal; otherwise (nohup, tmux logs, a scheduler's
+log file, where a bar would be drawn once, at the end) one plain line every ``log_every``
+steps: step, epoch, loss, triplets/s, ETA. ``logs/train.jsonl`` gets one JSON object per line: ``{"kind": "step", ...}`` every N steps (loss,
 its parts, the collapse diagnostics, throughput) and ``{"kind": "event", ...}`` lines for
 skipped steps and samples, checkpoints, resume and stop. A resumed run appends; steps between
 the last checkpoint and a kill appear twice (the second time is what the weights saw).
@@ -11,14 +13,20 @@ from __future__ import annotations
 import json
 import logging
 import math
+import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
+
+import numpy as np
 
 log = logging.getLogger(__name__)
 
 LOG_DIR = "logs"
 LOG_NAME = "train.jsonl"
+# Steps between two image summaries (depth map, warped target) in TensorBoard: images are
+# large next to scalars, and a few hundred steps still show the depth taking shape.
+IMAGES_EVERY = 250
 
 
 def _clean(v: Any) -> Any:
@@ -38,13 +46,25 @@ class TrainLog:
     """Rank 0's reporter; other ranks get ``TrainLog(None)`` which drops everything."""
 
     def __init__(self, run_dir: Path | None, progress: bool = False, total_steps: int = 0,
-                 start_step: int = 0, epochs: int = 0) -> None:
+                 start_step: int = 0, epochs: int = 0, log_every: int = 10,
+                 images_every: int = IMAGES_EVERY, plain: bool | None = None,
+                 stream: TextIO | None = None) -> None:
+        """``plain``: plain progress lines instead of a bar (default: when stderr is not a
+        terminal); ``stream``: where they go (default: stderr)."""
+        from relocdepth.progress import stderr_console, stderr_is_terminal
+
         self.enabled = run_dir is not None
         self._file = None
         self._tb = None
         self._progress = None
         self._task = None
         self.epochs = epochs
+        self.total_steps = total_steps
+        self.log_every = max(int(log_every), 1)
+        self.images_every = max(int(images_every), 1)
+        self._plain = False
+        self._stream = stream
+        self._t0, self._step0 = time.monotonic(), start_step
         if not self.enabled:
             return
         assert run_dir is not None
@@ -56,7 +76,8 @@ class TrainLog:
             self._tb = SummaryWriter(str(run_dir / LOG_DIR / "tensorboard"))
         except ImportError:
             log.info("tensorboard is not installed; logging to %s only", run_dir / LOG_DIR / LOG_NAME)
-        if progress:
+        self._plain = progress and (not stderr_is_terminal() if plain is None else plain)
+        if progress and not self._plain:
             from rich.progress import (
                 BarColumn,
                 MofNCompleteColumn,
@@ -70,6 +91,7 @@ class TrainLog:
                 TextColumn("epoch {task.fields[epoch]}"), BarColumn(), MofNCompleteColumn(),
                 TextColumn("loss {task.fields[loss]}"), TextColumn("{task.fields[rate]} triplets/s"),
                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                console=stderr_console(),
             )
             self._progress.start()
             self._task = self._progress.add_task(
@@ -95,12 +117,53 @@ class TrainLog:
                 self._tb.add_scalar(f"diag/{k}", v, s)
             self._tb.add_scalar("speed/triplets_per_s", record["triplets_per_s"], s)
 
+    def wants_images(self, step: int) -> bool:
+        """Whether :meth:`images` would write at this step (TensorBoard there, every N steps)."""
+        return self._tb is not None and step % self.images_every == 0
+
+    def images(self, step: int, images: dict[str, Any]) -> None:
+        """Image summaries in TensorBoard (nothing without it).
+
+        ``images``: name -> ``(H, W)`` map (a depth map: drawn through the depth colour map,
+        near = bright) or ``(3, H, W)`` RGB (float in [0, 1] or uint8); tensors or arrays.
+        """
+        if self._tb is None:
+            return
+        for name, img in images.items():
+            a = img.detach().float().cpu().numpy() if hasattr(img, "detach") else np.asarray(img)
+            if a.ndim == 2:
+                from relocdepth.plots import colourise_depth
+
+                rgb = colourise_depth(a)[..., ::-1].copy()  # BGR -> RGB
+                self._tb.add_image(name, rgb, step, dataformats="HWC")
+            elif a.ndim == 3 and a.shape[0] == 3:
+                chw = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else np.clip(a, 0.0, 1.0)
+                self._tb.add_image(name, chw, step, dataformats="CHW")
+            else:
+                raise ValueError(f"TrainLog.images: {name} has shape {a.shape}; want (H, W) or (3, H, W)")
+
     def tick(self, step: int, epoch: int, loss: float | None, rate: float | None) -> None:
+        if self._plain and self.enabled and (step % self.log_every == 0 or step == self.total_steps):
+            self._plain_line(step, epoch, loss, rate)
         if self._progress is not None and self._task is not None:
             self._progress.update(
                 self._task, completed=step, epoch=f"{epoch + 1}/{self.epochs}",
                 loss="-" if loss is None else f"{loss:.4f}", rate="-" if rate is None else f"{rate:.1f}",
             )
+
+    def _plain_line(self, step: int, epoch: int, loss: float | None, rate: float | None) -> None:
+        from relocdepth.progress import format_duration
+
+        elapsed = time.monotonic() - self._t0
+        done = step - self._step0
+        left = max(self.total_steps - step, 0)
+        eta = format_duration(left * elapsed / done) if done > 0 else "-"
+        parts = [f"step {step}/{self.total_steps}", f"epoch {epoch + 1}/{self.epochs}",
+                 "loss -" if loss is None else f"loss {loss:.4f}",
+                 "- triplets/s" if rate is None else f"{rate:.1f} triplets/s", f"ETA {eta}"]
+        stream = self._stream or sys.stderr
+        stream.write("train: " + ", ".join(parts) + "\n")
+        stream.flush()
 
     def close(self) -> None:
         if self._progress is not None:

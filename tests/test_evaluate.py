@@ -81,6 +81,18 @@ def test_constructed_test_errors_of_known_size() -> None:
     assert report["train"]["median_t_m"] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_threshold_columns_on_known_errors() -> None:
+    """5cm/5deg, 10cm/5deg (ACE's and DSAC*'s) and 10cm/10deg shares; bounds are inclusive."""
+    t = np.array([0.03, 0.07, 0.07, 0.20, 0.10, 0.05])
+    r = np.array([1.0, 3.0, 7.0, 1.0, 5.0, 5.0])
+    # in 5/5: frames 0, 5; 10/5: 0, 1, 4, 5; 10/10: 0, 1, 2, 4, 5
+    s = M.pose_summary(t, r)
+    assert s["pct_5cm_5deg"] == pytest.approx(100 * 2 / 6)
+    assert s["pct_10cm_5deg"] == pytest.approx(100 * 4 / 6)
+    assert s["pct_10cm_10deg"] == pytest.approx(100 * 5 / 6)
+    assert M.pose_summary(t[:0], r[:0])["pct_10cm_5deg"] is None
+
+
 def test_baselines() -> None:
     train_gt = trajectory(20, 0)
     test_gt = train_gt[[2, 7, 11]].copy()
@@ -190,3 +202,66 @@ def test_evaluate_on_chosen_sequences(run: Path, synth_shards: Path, tmp_path: P
     assert res.exit_code == 2, res.output
     last = res.output.strip().splitlines()[-1]
     assert last.startswith("error: ") and "seq-09" in last and "seq-01" in last, res.output
+
+
+def test_per_frame_csv_confidence_ranking_and_evo_ape(
+    run: Path, synth_shards: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The per-frame CSV and the TUM files agree with the report; evo reads the TUM files and
+    its APE (no alignment: the estimate is already in the GT frame) equals the report's errors."""
+    import csv
+
+    report_path = tmp_path / "eval" / "office.json"
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(report_path))
+    assert res.exit_code == 0, res.output
+    assert "10cm/5deg" in res.stdout and "Spearman" in res.stdout
+    report = json.loads(report_path.read_text())
+    validate("report", report)
+    csv_path = tmp_path / "eval" / "office.frames.csv"
+    assert report["outputs"]["frames_csv"] == str(csv_path)
+    with csv_path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["sequence", "frame", "t_err_m", "r_err_deg", "confidence"]
+    test = open_dataset(synth_shards).frames("test")
+    assert [(r["sequence"], int(r["frame"])) for r in rows] == [(x.sequence, x.frame) for x in test]
+    t_csv = np.array([float(r["t_err_m"]) for r in rows])
+    r_csv = np.array([float(r["r_err_deg"]) for r in rows])
+    conf = np.array([float(r["confidence"]) for r in rows])
+    assert np.all((conf > 0) & (conf <= 1))
+
+    # the CSV's errors are the errors between the TUM files, frame by frame
+    tum = report["outputs"]["tum"]["seq-03"]
+    _, T_est = read_tum(tum["estimate"])
+    _, T_gt = read_tum(tum["groundtruth"])
+    t_tum, r_tum = M.pose_errors(T_est, T_gt)
+    np.testing.assert_allclose(t_csv, t_tum, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(r_csv, r_tum, rtol=1e-4, atol=1e-3)
+    test_summary = report["pose"]["test"]
+    assert np.median(t_csv) == pytest.approx(test_summary["median_t_m"], rel=1e-4)
+    assert 100 * np.mean((t_csv <= 0.10) & (r_csv <= 5.0)) == pytest.approx(test_summary["pct_10cm_5deg"])
+    ranking = report["confidence"]
+    assert ranking["frames"] == len(rows)
+    assert ranking["median"] == pytest.approx(np.median(conf), rel=1e-4)
+    assert ranking["spearman_t"] == pytest.approx(M.spearman(conf, t_csv), abs=1e-3)
+    assert ranking["spearman_r"] == pytest.approx(M.spearman(conf, r_csv), abs=1e-3)
+
+    # evo (the tool people use on TUM files) agrees with the report
+    monkeypatch.setenv("HOME", str(tmp_path))  # evo keeps its settings under ~/.evo
+    evo_metrics = pytest.importorskip("evo.core.metrics")
+    from evo.tools import file_interface
+
+    ref = file_interface.read_tum_trajectory_file(tum["groundtruth"])
+    est = file_interface.read_tum_trajectory_file(tum["estimate"])
+    stats = {}
+    for name, relation in (("t", evo_metrics.PoseRelation.translation_part),
+                           ("r", evo_metrics.PoseRelation.rotation_angle_deg)):
+        ape = evo_metrics.APE(relation)
+        ape.process_data((ref, est))
+        stats[name] = {k: ape.get_statistic(getattr(evo_metrics.StatisticsType, k))
+                       for k in ("median", "mean", "rmse")}
+    seq = report["pose"]["per_sequence"]["seq-03"]
+    assert stats["t"]["median"] == pytest.approx(seq["median_t_m"], rel=1e-5, abs=1e-7)
+    assert stats["t"]["mean"] == pytest.approx(seq["mean_t_m"], rel=1e-5, abs=1e-7)
+    assert stats["r"]["median"] == pytest.approx(seq["median_r_deg"], rel=1e-4, abs=1e-3)
+    assert stats["r"]["mean"] == pytest.approx(seq["mean_r_deg"], rel=1e-4, abs=1e-3)
+    assert stats["t"]["rmse"] == pytest.approx(float(np.sqrt(np.mean(t_csv**2))), rel=1e-4)

@@ -138,4 +138,69 @@ def test_bad_inputs(run: Path, synth_scene: Path, tmp_path: Path) -> None:
     assert_user_error(invoke(str(empty), "--checkpoint", str(run)), "video")
     (tmp_path / "no_images").mkdir()
     assert_user_error(invoke(str(tmp_path / "no_images"), "--checkpoint", str(run)), "no images")
-    assert_user_error(invoke(img, "--checkpoint", str(run), "--format", "xml"), "--format")
+    bad_format = invoke(img, "--checkpoint", str(run), "--format", "xml")  # a choice: usage error
+    assert bad_format.exit_code == 2 and "xml" in bad_format.output and "json" in bad_format.output
+    assert_user_error(invoke(img, "--checkpoint", str(run), "--device", "gpu"), "--device", "cuda:N")
+
+
+def test_json_lines_stream_per_batch(run: Path, folder: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each batch's lines are handed out before the next batch is predicted."""
+    from relocdepth.localize import LocalizeConfig, localize
+    from relocdepth.predictor import Predictor
+
+    events: list[str] = []
+    real = Predictor.predict
+
+    def predict(self, *args, **kwargs):
+        events.append("predict")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Predictor, "predict", predict)
+    texts: list[str] = []
+    records, text = localize([folder], LocalizeConfig(checkpoint=str(run), batch_size=4),
+                             on_text=lambda t: (events.append("text"), texts.append(t)))
+    assert events == ["predict", "text", "predict", "text"]
+    assert [t.count("\n") for t in texts] == [4, FRAMES - 4]
+    assert "".join(texts) == text
+    assert [json.loads(line)["name"] for line in text.splitlines()] == [r["name"] for r in records]
+
+
+def test_progress_lines_on_stderr_without_terminal(run: Path, video: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from relocdepth import progress
+
+    monkeypatch.setattr(progress, "PLAIN_EVERY_S", 0.0)
+    res = invoke(str(video), "--checkpoint", str(run), "--batch-size", "4")
+    assert len(records(res)) == FRAMES
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("localize:")]
+    assert [ln.split(",")[0] for ln in lines] == [f"localize: 4/{FRAMES} images (67%)",
+                                                  f"localize: {FRAMES}/{FRAMES} images (100%)"]
+    assert all("localize" not in ln for ln in res.stdout.splitlines())  # stdout: poses only
+
+
+def test_depth_png_scale(run: Path, folder: Path, tmp_path: Path) -> None:
+    """depth PNG x depth_scale = the networks' depth; x the Sim(3) scale (metres) when aligned."""
+    from relocdepth.checkpoint import save_alignment
+    from relocdepth.localize import read_image
+    from relocdepth.predictor import Predictor
+    from relocdepth.trajectory import sim3_to_dict
+
+    img_path = folder / "frame-000002.color.png"
+    img = read_image(img_path)
+    predictor = Predictor.from_checkpoint(str(run))
+    pred = predictor.predict([img], [predictor.intrinsics_for(img.shape[1], img.shape[0])],
+                             with_depth=True)
+    net_depth = cv2.resize(pred.depth[0], (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR)
+    assert float(net_depth.max()) < 60.0  # fits a uint16 in millimetres even x 1.7
+
+    aligned_run = copy_run(run, tmp_path / "aligned")
+    scale = 1.7
+    save_alignment(aligned_run, sim3_to_dict(scale, np.eye(3), np.zeros(3)))
+    for which, expect in ((run, net_depth), (aligned_run, scale * net_depth)):
+        out = tmp_path / f"depth-{which.name}"
+        rec = records(invoke(str(img_path), "--checkpoint", str(which), "--depth-out", str(out)))[0]
+        png = cv2.imread(rec["depth_png"], cv2.IMREAD_UNCHANGED)
+        assert png.dtype == np.uint16 and png.shape == expect.shape
+        assert rec["depth_scale"] == 0.001  # millimetres
+        np.testing.assert_allclose(png * rec["depth_scale"], expect, atol=0.0005 + 1e-9)
+        assert rec["units"] == ("m" if which == aligned_run else "network")

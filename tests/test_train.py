@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from relocdepth import checkpoint as ckpt_io
-from relocdepth.errors import UserError
+from relocdepth.errors import TrainingDiverged, UserError
 
 torch.set_num_threads(1)
 
@@ -233,16 +233,16 @@ def test_nonfinite_losses_skip_then_stop(synth_shards: Path, tmp_path: Path, mon
     real = T.forward_losses
     calls = {"n": 0}
 
-    def sometimes_nan(tr, b):
+    def sometimes_nan(tr, b, *rest):
         calls["n"] += 1
-        loss, parts, diag = real(tr, b)
+        loss, parts, diag = real(tr, b, *rest)
         return (loss * float("nan") if calls["n"] == 2 else loss), parts, diag
 
     monkeypatch.setattr(T, "forward_losses", sometimes_nan)
     s = T.train(synth_shards, tmp_path / "a", _cfg(max_steps=3, checkpoint_every=10))
     assert s["nonfinite_skipped"] == 1 and s["steps"] == 3
 
-    def always_nan(tr, b):
+    def always_nan(tr, b, *rest):
         w = next(tr.nets.parameters())
         return (w.sum() * float("nan"), {}, {})
 
@@ -250,7 +250,7 @@ def test_nonfinite_losses_skip_then_stop(synth_shards: Path, tmp_path: Path, mon
     run = tmp_path / "b"
     shutil.copytree(tmp_path / "a", run)
     before = _weights(run)
-    with pytest.raises(UserError, match="diverged: 3 non-finite"):
+    with pytest.raises(TrainingDiverged, match="diverged: 3 non-finite"):
         T.train(synth_shards, run, _cfg(max_steps=20, max_nonfinite=3, resume=True))
     assert [p.name for p in ckpt_io.list_checkpoints(run)] == ["ckpt-00000003.pt"]  # last good one
     after = _weights(run)
