@@ -4,18 +4,24 @@ For a batch of 6 triplets (18 images) at each size, one fresh process per size (
 its own) measures:
 
 - ``nets``: bare forward + backward of the depth and DSC networks (a trivial loss on their outputs);
-- ``step``: forward + backward of the full ``triplet_loss`` (LCVS, 6 pairs, 4 scales), same batch;
-- the ratio step / nets (what the method's geometry and losses add on top of the networks);
-- peak RSS of the process (``resource.getrusage``), and RSS after building the networks.
+- ``step``: forward + backward of the full ``triplet_loss`` (LCVS, 6 pairs, 4 scales), same batch,
+  once per loss resolution asked for (``input``: every scale warped at the input size; ``decoder``:
+  each scale at its decoder layer's size), each in its own process;
+- the ratio step / nets (what the method's geometry and losses add on top of the networks), and
+  per size the ratios decoder / input of the step time and of the peak RSS;
+- peak RSS of the process (``resource.getrusage``), RSS after building the networks, and the load
+  average of the machine before and after (the numbers are only comparable on a quiet machine).
 
 Usage: ``python benchmarks/bench_core.py [--sizes 128x96,256x192,640x480] [--iters 3]
-[--iters-large 1] [--warmup 1] [--device cpu|cuda] [--threads N] [--recompute-warps]``. Prints one table; numbers go to the README (performance).
+[--iters-large 1] [--warmup 1] [--device cpu|cuda] [--threads N] [--recompute-warps]
+[--loss-resolutions input,decoder]``. Prints one table; numbers go to the README (performance).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -32,7 +38,11 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_one(width: int, height: int, iters: int, warmup: int, device: str) -> dict:
+def _load() -> float:
+    return os.getloadavg()[0]
+
+
+def run_one(width: int, height: int, iters: int, warmup: int, device: str, loss_resolution: str) -> dict:
     import torch
 
     from relocdepth.method import MethodConfig, triplet_loss
@@ -60,12 +70,14 @@ def run_one(width: int, height: int, iters: int, warmup: int, device: str) -> di
         nets.zero_grad(set_to_none=True)
 
     def loss_step() -> None:
-        total, _, _ = triplet_loss(nets, images, images, K, MethodConfig(recompute_warps=RECOMPUTE))
+        cfg = MethodConfig(recompute_warps=RECOMPUTE, loss_resolution=loss_resolution)
+        total, _, _ = triplet_loss(nets, images, images, K, cfg)
         total.backward()
         nets.zero_grad(set_to_none=True)
 
-    out: dict = {"size": f"{width}x{height}", "images": TRIPLETS * 3, "iters": iters, "warmup": warmup,
-                 "threads": torch.get_num_threads(), "rss_built_mb": rss_built}
+    out: dict = {"size": f"{width}x{height}", "loss_resolution": loss_resolution, "recompute_warps": RECOMPUTE,
+                 "images": TRIPLETS * 3, "iters": iters, "warmup": warmup, "threads": torch.get_num_threads(),
+                 "rss_built_mb": rss_built, "load_before": _load()}
     for name, fn in (("nets", nets_step), ("step", loss_step)):
         for _ in range(warmup):  # allocator, kernels; negligible next to a 640x480 step on CPU
             fn()
@@ -77,6 +89,7 @@ def run_one(width: int, height: int, iters: int, warmup: int, device: str) -> di
         out[f"{name}_s"] = (time.perf_counter() - t0) / iters
         out[f"peak_rss_after_{name}_mb"] = _rss_mb()  # ru_maxrss only grows: nets first, then + losses
     out["peak_rss_mb"] = _rss_mb()
+    out["load_after"] = _load()
     if dev.type == "cuda":
         out["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
     return out
@@ -92,11 +105,14 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0,
                     help="torch threads (0: default); 1 avoids oversubscribing a CPU shared with another job")
     ap.add_argument("--recompute-warps", action="store_true", help="the loss step with MethodConfig(recompute_warps=True)")
+    ap.add_argument("--loss-resolutions", default="input",
+                    help="comma-separated MethodConfig.loss_resolution values to time (input, decoder)")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child mode: WxH
+    ap.add_argument("--mode", default="input", help=argparse.SUPPRESS)  # child's loss resolution
     args = ap.parse_args()
     if args.one:
         w, h = (int(v) for v in args.one.split("x"))
-        print(json.dumps(run_one(w, h, args.iters, args.warmup, args.device)))
+        print(json.dumps(run_one(w, h, args.iters, args.warmup, args.device, args.mode)))
         return
     rows = []
     for size in args.sizes.split(","):
@@ -104,27 +120,45 @@ def main() -> None:
         large = w * h >= LARGE_PIXELS and args.device == "cpu"
         iters = args.iters_large if large else args.iters
         warmup = 0 if large else args.warmup
-        res = subprocess.run(
-            [sys.executable, __file__, "--one", size, "--iters", str(iters), "--warmup", str(warmup),
-             "--device", args.device, "--threads", str(THREADS)] + (["--recompute-warps"] if RECOMPUTE else []),
-            check=False, capture_output=True, text=True,
-        )
-        if res.returncode != 0:  # e.g. killed by the kernel's OOM killer at 640x480 on a small machine
-            print(f"{size}: child failed with exit code {res.returncode} (negative: signal; -9 is the "
-                  f"OOM killer): {res.stderr.strip().splitlines()[-1:] }", flush=True)
-            continue
-        rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
-        print(f"{size}: {json.dumps(rows[-1])}", flush=True)
+        for mode in args.loss_resolutions.split(","):
+            res = subprocess.run(
+                [sys.executable, __file__, "--one", size, "--mode", mode, "--iters", str(iters),
+                 "--warmup", str(warmup), "--device", args.device, "--threads", str(THREADS)]
+                + (["--recompute-warps"] if RECOMPUTE else []),
+                check=False, capture_output=True, text=True,
+            )
+            if res.returncode != 0:  # e.g. killed by the kernel's OOM killer at 640x480 on a small machine
+                print(f"{size} {mode}: child failed with exit code {res.returncode} (negative: signal; -9 is "
+                      f"the OOM killer): {res.stderr.strip().splitlines()[-1:]}", flush=True)
+                continue
+            rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+            print(f"{size} {mode}: {json.dumps(rows[-1])}", flush=True)
     if not rows:
         return
     print(f"batch: {TRIPLETS} triplets = {TRIPLETS * 3} images, device {args.device}, "
-          f"torch threads {rows[0]['threads']}")
-    print(f"{'size':>9} {'iters':>5} {'nets fwd+bwd s':>15} {'img/s':>7} {'loss step s':>12} "
-          f"{'step/nets':>9} {'RSS built MB':>12} {'peak RSS MB':>11}")
+          f"torch threads {rows[0]['threads']}, recompute warps {RECOMPUTE}")
+    print(f"{'size':>9} {'loss res':>8} {'iters':>5} {'nets fwd+bwd s':>15} {'img/s':>7} {'loss step s':>12} "
+          f"{'step/nets':>9} {'RSS built MB':>12} {'peak RSS MB':>11} {'load':>9}")
     for r in rows:
-        print(f"{r['size']:>9} {r['iters']:>5} {r['nets_s']:>15.2f} {r['images'] / r['nets_s']:>7.1f} "
-              f"{r['step_s']:>12.2f} {r['step_s'] / r['nets_s']:>9.2f} {r['rss_built_mb']:>12.0f} "
-              f"{r['peak_rss_mb']:>11.0f}" + (f"  cuda peak {r['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in r else ""))
+        print(f"{r['size']:>9} {r['loss_resolution']:>8} {r['iters']:>5} {r['nets_s']:>15.2f} "
+              f"{r['images'] / r['nets_s']:>7.1f} {r['step_s']:>12.2f} {r['step_s'] / r['nets_s']:>9.2f} "
+              f"{r['rss_built_mb']:>12.0f} {r['peak_rss_mb']:>11.0f} "
+              f"{r['load_before']:>4.1f}-{r['load_after']:<4.1f}"
+              + (f"  cuda peak {r['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in r else ""))
+    by_size: dict[str, dict[str, dict]] = {}
+    for r in rows:
+        by_size.setdefault(r["size"], {})[r["loss_resolution"]] = r
+    for size, modes in by_size.items():
+        if "input" in modes and "decoder" in modes:
+            dec, inp = modes["decoder"], modes["input"]
+            print(f"{size}: decoder / input: loss step time {dec['step_s'] / inp['step_s']:.2f}, "
+                  f"peak RSS {dec['peak_rss_mb'] / inp['peak_rss_mb']:.2f}, loss's own memory (peak - "
+                  f"after nets) {_own(dec) / max(_own(inp), 1.0):.2f}")
+
+
+def _own(r: dict) -> float:
+    """Memory the loss step adds on top of the bare network step (MB)."""
+    return r["peak_rss_mb"] - r["peak_rss_after_nets_mb"]
 
 
 if __name__ == "__main__":

@@ -29,6 +29,14 @@ def _pixels(text: str) -> str:
     return text
 
 
+def _loss_resolution(text: str) -> str:
+    from relocdepth.method import LOSS_RESOLUTIONS
+
+    if text not in LOSS_RESOLUTIONS:
+        raise UserError(f"--loss-resolution must be one of {', '.join(LOSS_RESOLUTIONS)}, not {text!r}")
+    return text
+
+
 @app.command()
 @user_errors
 def train(
@@ -58,6 +66,8 @@ def train(
     scale_max: Annotated[float, typer.Option("--scale-max", help="Scale augmentation upper bound (paper: 1.1; 1 = off).")] = 1.1,
     photometric_pixels: Annotated[str, typer.Option("--photometric-pixels", help="L_p averages over 'valid' pixels (in the source image; paper) or 'all' (monodepth2, border padding: cannot be gamed by warping off-image).")] = "valid",
     recompute_warps: Annotated[bool, typer.Option("--recompute-warps", help="Recompute the warps and SSIM in the backward pass: same gradients, much less memory (640x480 batch 6 on a 24 GB CPU machine), ~10-20% more time.")] = False,
+    loss_resolution: Annotated[str, typer.Option("--loss-resolution", help="Each scale's L_p at the input size ('input', monodepth2: disparity upsampled) or at its decoder layer's size ('decoder', the paper: images downsampled, K scaled).")] = "input",
+    decoder_bn: Annotated[bool, typer.Option("--decoder-bn", help="Batch normalisation in the depth decoder's conv blocks (the paper; monodepth2 has none).")] = False,
     log_every: Annotated[int, typer.Option("--log-every", help="Write logs/train.jsonl every N steps.")] = 10,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Steps between checkpoints.")] = 500,
     keep_last: Annotated[int, typer.Option("--keep-last", help="Checkpoints to keep (older are deleted).")] = 3,
@@ -72,7 +82,8 @@ def train(
         window_seconds=window_seconds, window_schedule=_schedule(window_schedule), global_epochs=global_epochs,
         global_prob=global_prob, scale_max=scale_max, jitter_per_image=jitter_per_image,
         lcvs=not no_lcvs, photometric_pixels=_pixels(photometric_pixels),
-        recompute_warps=recompute_warps, use_dsc=not no_dsc,
+        recompute_warps=recompute_warps, loss_resolution=_loss_resolution(loss_resolution),
+        decoder_bn=decoder_bn, use_dsc=not no_dsc,
         pretrained=None if pretrained.lower() == "none" else pretrained, seed=seed, workers=workers,
         device=device, amp=amp, amp_dtype=amp_dtype, channels_last=channels_last, max_steps=max_steps,
         log_every=log_every, checkpoint_every=checkpoint_every, keep_last=keep_last, progress=progress,
