@@ -130,7 +130,8 @@ def triplet_loss(
         ``total`` (scalar), ``parts`` and ``diagnostics``.
 
         ``parts`` (tensors attached to the graph; ``.detach()`` before logging): ``L_p``, ``L_s``,
-        ``L_c``; ``L_p/scale{k}`` and ``L_s/scale{k}`` (k = 0 full resolution ... 3);
+        ``L_c``; ``L_p/scale{k}`` and ``L_s/scale{k}`` (k = 0 full resolution ... 3; L_p of scale k
+        warped at the input size or at scale k's own size, as ``cfg.loss_resolution`` says);
         ``L_p/pair_{t}{s}`` (target t synthesised from source s, mean over scales and batch).
         ``total = L_p + w_s L_s + w_c L_c``; L_p and L_s are means over scales (L_s of scale k
         weighted 1/2^k as monodepth2), pairs and batch; L_s over the frames used as targets.
