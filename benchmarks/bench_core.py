@@ -12,9 +12,14 @@ its own) measures:
 - peak RSS of the process (``resource.getrusage``), RSS after building the networks, and the load
   average of the machine before and after (the numbers are only comparable on a quiet machine).
 
+``--loss-only`` times the loss alone: the networks' outputs are computed once (one image at a time,
+without gradients) and fed to ``triplet_loss`` as leaf tensors, so the step is the geometry and
+losses with their backward down to those outputs, and the memory is the loss's own (for sizes where
+the networks and the loss together do not fit next to other jobs).
+
 Usage: ``python benchmarks/bench_core.py [--sizes 128x96,256x192,640x480] [--iters 3]
 [--iters-large 1] [--warmup 1] [--device cpu|cuda] [--threads N] [--recompute-warps]
-[--loss-resolutions input,decoder]``. Prints one table; numbers go to the README (performance).
+[--loss-resolutions input,decoder] [--loss-only]``. Prints one table; numbers go to the README (performance).
 """
 
 from __future__ import annotations
@@ -26,9 +31,11 @@ import resource
 import subprocess
 import sys
 import time
+from typing import Any
 
 THREADS = int(sys.argv[sys.argv.index("--threads") + 1]) if "--threads" in sys.argv else 0  # 0: torch's default
 RECOMPUTE = "--recompute-warps" in sys.argv  # MethodConfig.recompute_warps for the loss step
+LOSS_ONLY = "--loss-only" in sys.argv  # time triplet_loss on cached network outputs, without the networks
 TRIPLETS = 6  # the paper's batch size (Sec. IV-B)
 LARGE_PIXELS = 640 * 480
 
@@ -40,6 +47,29 @@ def _rss_mb() -> float:
 
 def _load() -> float:
     return os.getloadavg()[0]
+
+
+class _CachedOutputs:
+    """The networks' outputs on a fixed batch as leaf tensors, behind the ``.depth`` / ``.dsc`` calls
+    that ``triplet_loss`` makes: the loss and its backward run, the networks do not."""
+
+    def __init__(self, nets: Any, flat: Any) -> None:
+        import torch
+
+        with torch.no_grad():  # one image at a time: the peak stays that of one forward
+            outs = [(nets.depth(x[None]), nets.dsc(x[None])) for x in flat]
+        self.disps = [torch.cat([o[0][k] for o in outs]).requires_grad_() for k in range(len(outs[0][0]))]
+        self.dsc_out = torch.cat([o[1] for o in outs]).requires_grad_()
+
+    def depth(self, x: Any) -> list:
+        return self.disps
+
+    def dsc(self, x: Any) -> Any:
+        return self.dsc_out
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for t in [*self.disps, self.dsc_out]:
+            t.grad = None
 
 
 def run_one(width: int, height: int, iters: int, warmup: int, device: str, loss_resolution: str) -> dict:
@@ -69,16 +99,22 @@ def run_one(width: int, height: int, iters: int, warmup: int, device: str, loss_
         (sum(d.mean() for d in disps) + dsc.mean()).backward()
         nets.zero_grad(set_to_none=True)
 
+    model: Any = nets
+    if LOSS_ONLY:
+        model = _CachedOutputs(nets, flat)
+        rss_built = _rss_mb()
+
     def loss_step() -> None:
         cfg = MethodConfig(recompute_warps=RECOMPUTE, loss_resolution=loss_resolution)
-        total, _, _ = triplet_loss(nets, images, images, K, cfg)
+        total, _, _ = triplet_loss(model, images, images, K, cfg)
         total.backward()
-        nets.zero_grad(set_to_none=True)
+        model.zero_grad(set_to_none=True)
 
     out: dict = {"size": f"{width}x{height}", "loss_resolution": loss_resolution, "recompute_warps": RECOMPUTE,
-                 "images": TRIPLETS * 3, "iters": iters, "warmup": warmup, "threads": torch.get_num_threads(),
-                 "rss_built_mb": rss_built, "load_before": _load()}
-    for name, fn in (("nets", nets_step), ("step", loss_step)):
+                 "loss_only": LOSS_ONLY, "images": TRIPLETS * 3, "iters": iters, "warmup": warmup,
+                 "threads": torch.get_num_threads(), "rss_built_mb": rss_built, "load_before": _load()}
+    steps = (("step", loss_step),) if LOSS_ONLY else (("nets", nets_step), ("step", loss_step))
+    for name, fn in steps:
         for _ in range(warmup):  # allocator, kernels; negligible next to a 640x480 step on CPU
             fn()
         sync()
@@ -90,6 +126,9 @@ def run_one(width: int, height: int, iters: int, warmup: int, device: str, loss_
         out[f"peak_rss_after_{name}_mb"] = _rss_mb()  # ru_maxrss only grows: nets first, then + losses
     out["peak_rss_mb"] = _rss_mb()
     out["load_after"] = _load()
+    # what the loss adds to the networks: time and memory
+    out["own_s"] = out["step_s"] - out.get("nets_s", 0.0)
+    out["own_mb"] = out["peak_rss_mb"] - out.get("peak_rss_after_nets_mb", rss_built)
     if dev.type == "cuda":
         out["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
     return out
@@ -105,6 +144,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0,
                     help="torch threads (0: default); 1 avoids oversubscribing a CPU shared with another job")
     ap.add_argument("--recompute-warps", action="store_true", help="the loss step with MethodConfig(recompute_warps=True)")
+    ap.add_argument("--loss-only", action="store_true",
+                    help="time triplet_loss on cached network outputs (the loss's own time and memory)")
     ap.add_argument("--loss-resolutions", default="input",
                     help="comma-separated MethodConfig.loss_resolution values to time (input, decoder)")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # child mode: WxH
@@ -124,7 +165,7 @@ def main() -> None:
             res = subprocess.run(
                 [sys.executable, __file__, "--one", size, "--mode", mode, "--iters", str(iters),
                  "--warmup", str(warmup), "--device", args.device, "--threads", str(THREADS)]
-                + (["--recompute-warps"] if RECOMPUTE else []),
+                + (["--recompute-warps"] if RECOMPUTE else []) + (["--loss-only"] if LOSS_ONLY else []),
                 check=False, capture_output=True, text=True,
             )
             if res.returncode != 0:  # e.g. killed by the kernel's OOM killer at 640x480 on a small machine
@@ -136,13 +177,16 @@ def main() -> None:
     if not rows:
         return
     print(f"batch: {TRIPLETS} triplets = {TRIPLETS * 3} images, device {args.device}, "
-          f"torch threads {rows[0]['threads']}, recompute warps {RECOMPUTE}")
-    print(f"{'size':>9} {'loss res':>8} {'iters':>5} {'nets fwd+bwd s':>15} {'img/s':>7} {'loss step s':>12} "
-          f"{'step/nets':>9} {'RSS built MB':>12} {'peak RSS MB':>11} {'load':>9}")
+          f"torch threads {rows[0]['threads']}, recompute warps {RECOMPUTE}, "
+          + ("loss only (cached network outputs)" if LOSS_ONLY else "networks + loss"))
+    print(f"{'size':>9} {'loss res':>8} {'iters':>5} {'nets fwd+bwd s':>15} {'loss step s':>12} "
+          f"{'step/nets':>9} {'loss own s':>10} {'RSS built MB':>12} {'peak RSS MB':>11} {'loss own MB':>11} "
+          f"{'load':>9}")
     for r in rows:
-        print(f"{r['size']:>9} {r['loss_resolution']:>8} {r['iters']:>5} {r['nets_s']:>15.2f} "
-              f"{r['images'] / r['nets_s']:>7.1f} {r['step_s']:>12.2f} {r['step_s'] / r['nets_s']:>9.2f} "
-              f"{r['rss_built_mb']:>12.0f} {r['peak_rss_mb']:>11.0f} "
+        nets_s = f"{r['nets_s']:>15.2f}" if "nets_s" in r else f"{'-':>15}"
+        ratio = f"{r['step_s'] / r['nets_s']:>9.2f}" if "nets_s" in r else f"{'-':>9}"
+        print(f"{r['size']:>9} {r['loss_resolution']:>8} {r['iters']:>5} {nets_s} {r['step_s']:>12.2f} {ratio} "
+              f"{r['own_s']:>10.2f} {r['rss_built_mb']:>12.0f} {r['peak_rss_mb']:>11.0f} {r['own_mb']:>11.0f} "
               f"{r['load_before']:>4.1f}-{r['load_after']:<4.1f}"
               + (f"  cuda peak {r['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in r else ""))
     by_size: dict[str, dict[str, dict]] = {}
@@ -151,15 +195,10 @@ def main() -> None:
     for size, modes in by_size.items():
         if "input" in modes and "decoder" in modes:
             dec, inp = modes["decoder"], modes["input"]
-            own_s = (dec["step_s"] - dec["nets_s"]) / (inp["step_s"] - inp["nets_s"])
             print(f"{size}: decoder / input: loss step time {dec['step_s'] / inp['step_s']:.2f} (the loss's "
-                  f"own time, step - nets: {own_s:.2f}), peak RSS {dec['peak_rss_mb'] / inp['peak_rss_mb']:.2f} "
-                  f"(the loss's own memory, peak - after nets: {_own(dec) / max(_own(inp), 1.0):.2f})")
-
-
-def _own(r: dict) -> float:
-    """Memory the loss step adds on top of the bare network step (MB)."""
-    return r["peak_rss_mb"] - r["peak_rss_after_nets_mb"]
+                  f"own time: {dec['own_s'] / inp['own_s']:.2f}), peak RSS "
+                  f"{dec['peak_rss_mb'] / inp['peak_rss_mb']:.2f} (the loss's own memory: "
+                  f"{dec['own_mb'] / max(inp['own_mb'], 1.0):.2f})")
 
 
 if __name__ == "__main__":
