@@ -36,6 +36,14 @@ def _pixels(text: str) -> str:
     return text
 
 
+def _loss_resolution(text: str) -> str:
+    from relocdepth.method import LOSS_RESOLUTIONS
+
+    if text not in LOSS_RESOLUTIONS:
+        raise UserError(f"--loss-resolution must be one of {', '.join(LOSS_RESOLUTIONS)}, not {text!r}")
+    return text
+
+
 # Options that are not TrainConfig fields, and those whose field has another name or type.
 _NOT_FIELDS = ("ctx", "shards", "out", "recipe", "config")
 _CONVERT = {
@@ -46,6 +54,7 @@ _CONVERT = {
     "no_dsc": ("use_dsc", lambda v: not v),
     "pretrained": ("pretrained", lambda v: None if v is None or v.lower() == "none" else v),
     "device": ("device", parse_device),
+    "loss_resolution": ("loss_resolution", _loss_resolution),
 }
 
 
@@ -99,6 +108,8 @@ def train(
     bootstrap_steps: Annotated[int, typer.Option("--bootstrap-steps", help="Steps during which the bootstrap's poses drive the warps; then the DSC poses do (the paper's loss).")] = 0,
     bootstrap_fade_steps: Annotated[int, typer.Option("--bootstrap-fade-steps", help="Steps over which the DSC-vs-bootstrap consistency term fades to 0 after the hand-over.")] = 500,
     w_bootstrap: Annotated[float, typer.Option("--w-bootstrap", help="Weight of the DSC-vs-bootstrap relative-pose consistency term.")] = 1.0,
+    loss_resolution: Annotated[str, typer.Option("--loss-resolution", help="Each scale's L_p at the input size ('input', monodepth2: disparity upsampled) or at its decoder layer's size ('decoder', the paper: images downsampled, K scaled).")] = "input",
+    decoder_bn: Annotated[bool, typer.Option("--decoder-bn", help="Batch normalisation in the depth decoder's conv blocks (the paper; monodepth2 has none).")] = False,
     log_every: Annotated[int, typer.Option("--log-every", help="Write logs/train.jsonl every N steps.")] = 10,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Steps between checkpoints.")] = 500,
     keep_last: Annotated[int, typer.Option("--keep-last", help="Checkpoints to keep (older are deleted).")] = 3,

@@ -29,14 +29,16 @@ from relocdepth.models import Networks, disp_to_depth
 CONF_ROT_DEG = 5.0
 CONF_TRANS_REL = 0.05
 
-__all__ = ["PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "Bootstrap", "MethodConfig", "bootstrap_poses",
-           "pairs_for", "predict", "triplet_loss"]
+__all__ = ["LOSS_RESOLUTIONS", "PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "Bootstrap", "MethodConfig",
+           "bootstrap_poses", "pairs_for", "predict", "triplet_loss", "two_view_poses"]
 
 # (target, source) frame indices of a triplet; the middle frame is index 1.
 PAIRS_LCVS: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
 PAIRS_MIDDLE: tuple[tuple[int, int], ...] = ((1, 0), (1, 2))
 # The pixel sets L_p can average over (MethodConfig.photometric_pixels).
 PHOTOMETRIC_PIXELS = ("valid", "all")
+# Where each scale's L_p is computed (MethodConfig.loss_resolution).
+LOSS_RESOLUTIONS = ("input", "decoder")
 
 
 @dataclass(frozen=True)
@@ -57,12 +59,18 @@ class MethodConfig:
     # (torch.utils.checkpoint): same gradients, a fraction of the loss's activation memory (the
     # paper's 640x480 batch of 6 triplets needs more than 21 GB on CPU without it), ~10-20 % more time.
     recompute_warps: bool = False
+    # Resolution of each scale's warp and L_p: "input" (monodepth2: the scale's disparity upsampled
+    # to the input size) or "decoder" (paper Sec. III-B: "at the resolution of each decoder's
+    # layer": images area-downsampled and K scaled to the scale's own size).
+    loss_resolution: str = "input"
     min_depth: float = 0.1
     max_depth: float = 100.0
 
     def __post_init__(self) -> None:
         if self.photometric_pixels not in PHOTOMETRIC_PIXELS:
             raise ValueError(f"photometric_pixels must be one of {PHOTOMETRIC_PIXELS}, not {self.photometric_pixels!r}")
+        if self.loss_resolution not in LOSS_RESOLUTIONS:
+            raise ValueError(f"loss_resolution must be one of {LOSS_RESOLUTIONS}, not {self.loss_resolution!r}")
 
 
 @dataclass(frozen=True)
@@ -168,7 +176,8 @@ def triplet_loss(
         ``total`` (scalar), ``parts`` and ``diagnostics``.
 
         ``parts`` (tensors attached to the graph; ``.detach()`` before logging): ``L_p``, ``L_s``,
-        ``L_c``; ``L_p/scale{k}`` and ``L_s/scale{k}`` (k = 0 full resolution ... 3);
+        ``L_c``; ``L_p/scale{k}`` and ``L_s/scale{k}`` (k = 0 full resolution ... 3; L_p of scale k
+        warped at the input size or at scale k's own size, as ``cfg.loss_resolution`` says);
         ``L_p/pair_{t}{s}`` (target t synthesised from source s, mean over scales and batch).
         ``total = L_p + w_s L_s + w_c L_c``; L_p and L_s are means over scales (L_s of scale k
         weighted 1/2^k as monodepth2), pairs and batch; L_s over the frames used as targets.
@@ -209,9 +218,13 @@ def _triplet_loss_fp32(
     """The part of :func:`triplet_loss` after the networks (full precision)."""
     B, _, C, H, W = images.shape
     Kf = K.reshape(B * 3, 3, 3)
+    # "input": every scale's depth at the input size; "decoder": at its own size (scale 0 is the
+    # input size either way, so the poses below see the same full-res depth in both modes)
+    at_input = cfg.loss_resolution == "input"
     depths = [
         disp_to_depth(
-            d if d.shape[-2:] == (H, W) else F.interpolate(d, (H, W), mode="bilinear", align_corners=False),
+            d if d.shape[-2:] == (H, W) or not at_input
+            else F.interpolate(d, (H, W), mode="bilinear", align_corners=False),
             cfg.min_depth,
             cfg.max_depth,
         )
@@ -261,18 +274,25 @@ def _triplet_loss_fp32(
     lp_scales, ls_scales = [], []
     valid_frac = 0.0
     for k, (disp, depth) in enumerate(zip(disps, depths)):
-        depth_t = flat(depth.reshape(B, 3, 1, H, W)[:, t_idx])
-        if cfg.recompute_warps and torch.is_grad_enabled():
-            lp_img, valid_mean = checkpoint(_warp_loss, I_s, depth_t, T_t2s, K_t, K_s, I_t, cfg, use_reentrant=False)
+        h, w = disp.shape[-2:]
+        images_k = _downsample(images, h, w)  # L_s always, L_p too at decoder resolution
+        if at_input or (h, w) == (H, W):
+            Ik_t, Ik_s, Kk_t, Kk_s = I_t, I_s, K_t, K_s
         else:
-            lp_img, valid_mean = _warp_loss(I_s, depth_t, T_t2s, K_t, K_s, I_t, cfg)
+            Kk = geo.scale_intrinsics(K, w / W, h / H)
+            Ik_t, Ik_s = flat(images_k[:, t_idx]), flat(images_k[:, s_idx])
+            Kk_t, Kk_s = flat(Kk[:, t_idx]), flat(Kk[:, s_idx])
+        depth_t = flat(depth.reshape(B, 3, 1, *depth.shape[-2:])[:, t_idx])
+        if cfg.recompute_warps and torch.is_grad_enabled():
+            lp_img, valid_mean = checkpoint(_warp_loss, Ik_s, depth_t, T_t2s, Kk_t, Kk_s, Ik_t, cfg,
+                                            use_reentrant=False)
+        else:
+            lp_img, valid_mean = _warp_loss(Ik_s, depth_t, T_t2s, Kk_t, Kk_s, Ik_t, cfg)
         lp = lp_img.reshape(B, P).mean(0)  # (P,)
         lp_pairs = lp_pairs + lp / len(disps)
         lp_scales.append(lp.mean())
-        h, w = disp.shape[-2:]
         disp_t = disp.reshape(B, 3, 1, h, w)[:, targets].reshape(-1, 1, h, w)
-        img_t = images[:, targets].reshape(-1, C, H, W)
-        img_k = img_t if (h, w) == (H, W) else F.interpolate(img_t, (h, w), mode="area")
+        img_k = images_k[:, targets].reshape(-1, C, h, w)
         ls_scales.append(smoothness_loss(disp_t, img_k).mean() / 2**k)
         parts[f"L_p/scale{k}"] = lp_scales[-1]
         parts[f"L_s/scale{k}"] = ls_scales[-1]
@@ -323,6 +343,14 @@ def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor, T
     T = torch.where(usable[..., None, None], T, fallback)
     eye = torch.eye(4, dtype=T.dtype, device=T.device).expand(B, 4, 4)
     return torch.stack((geo.invert_pose(T[:, 0]), eye, geo.invert_pose(T[:, 1])), dim=1)
+
+
+def _downsample(images: Tensor, h: int, w: int) -> Tensor:
+    """``(B, 3, C, H, W)`` frames area-averaged to ``h x w`` (unchanged at their own size)."""
+    B, n, C, H, W = images.shape
+    if (h, w) == (H, W):
+        return images
+    return F.interpolate(images.reshape(B * n, C, H, W), (h, w), mode="area").reshape(B, n, C, h, w)
 
 
 def _warp_loss(

@@ -76,6 +76,8 @@ class TrainConfig:
     w_c: float = 0.03  # paper IV-B: pose coordinate weight
     photometric_pixels: str = "valid"  # L_p over "valid" pixels (DESIGN.md) or "all" (monodepth2)
     recompute_warps: bool = False  # checkpoint the warps/SSIM: less memory, a little more time
+    loss_resolution: str = "input"  # paper III-B: "decoder" (each layer's size); "input": monodepth2
+    decoder_bn: bool = False  # paper IV-B: BN in the depth decoder too (monodepth2: none)
     # Relative-pose bootstrap (not in the paper; README, fidelity): for the first bootstrap_steps the
     # warps use relative poses from "posenet" (a two-frame network trained by the same photometric
     # loss), "essential" (essential matrix of KLT tracks, translation scaled by the current depth) or
@@ -209,8 +211,10 @@ def _method_and_model_configs(cfg: TrainConfig) -> tuple[Any, Any]:
         return cls(**{k: v for k, v in values.items() if k in names})
 
     common = {"lcvs": cfg.lcvs, "use_dsc": cfg.use_dsc, "alpha": cfg.alpha, "w_s": cfg.w_s, "w_c": cfg.w_c,
-              "photometric_pixels": cfg.photometric_pixels, "recompute_warps": cfg.recompute_warps}
+              "photometric_pixels": cfg.photometric_pixels, "recompute_warps": cfg.recompute_warps,
+              "loss_resolution": cfg.loss_resolution}
     return build(MethodConfig, common), build(ModelConfig, {"pretrained": cfg.pretrained, "use_dsc": cfg.use_dsc,
+                                                            "decoder_bn": cfg.decoder_bn,
                                                             "relpose": cfg.bootstrap == "posenet"})
 
 

@@ -176,3 +176,62 @@ def test_initial_dsc_gives_finite_nondegenerate_poses() -> None:
     assert torch.isfinite(geo.pose_matrix(qm, cm)).all()
     # each cell looks along its own ray, so the mean rotation is near identity
     assert float(torch.rad2deg(geo.quat_angle(qm, torch.tensor([1.0, 0, 0, 0])).max())) < 5.0
+
+
+def test_decoder_batch_norm_option() -> None:
+    """Paper Sec. IV-B: BN in every layer but the outputs. Off: monodepth2's decoder, unchanged."""
+    from relocdepth.models.depth import NUM_CH_DEC
+
+    plain, bn = DepthNet(), DepthNet(decoder_bn=True)
+    norms = [m for m in bn.decoder.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    assert len(norms) == 2 * len(NUM_CH_DEC)  # two conv blocks per decoder level
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in plain.decoder.modules())
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in bn.decoder.dispconv.modules())
+    # each block trades its conv bias (cout) for BN's scale and shift (2 cout)
+    assert _count(bn.decoder) == _count(plain.decoder) + 2 * sum(NUM_CH_DEC)
+    keys = set(plain.decoder.state_dict())
+    assert "upconv1.4.conv.bias" in keys and not any("norm" in k for k in keys)
+    x = torch.rand(2, 3, 96, 128)
+    bn.train()
+    disps = [d.detach() for d in bn(x)]
+    assert [tuple(d.shape) for d in disps] == [(2, 1, 96 >> s, 128 >> s) for s in range(4)]
+    assert all(float(d.min()) >= 0 and float(d.max()) <= 1 for d in disps)
+    assert float(bn.decoder.upconv0[0].norm.running_mean.abs().sum()) > 0  # statistics are tracked
+    nets = build_networks(ModelConfig(decoder_bn=True))
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in nets.depth.decoder.modules())
+
+
+def _save_run(run: Path, model_cfg: dict, state: dict[str, torch.Tensor]) -> None:
+    import relocdepth
+    from relocdepth import checkpoint as ckpt_io
+
+    meta = {
+        "format": ckpt_io.FORMAT, "format_version": ckpt_io.FORMAT_VERSION,
+        "tool_version": relocdepth.__version__, "created": "2026-01-01T00:00:00+00:00",
+        "step": 1, "epoch": 0, "position": 0, "manifest_hash": "test",
+        "dataset": {"name": "test", "root": str(run)}, "input_size": [128, 96],
+        "intrinsics": {"fx": 100.0, "fy": 100.0, "cx": 63.5, "cy": 47.5, "width": 128, "height": 96},
+        "intrinsics_policy": "resize", "model": model_cfg, "method": {}, "train": {}, "world_size": 1,
+    }
+    ckpt_io.save_checkpoint(run, {"meta": meta, "model": state})
+
+
+def test_checkpoints_with_and_without_decoder_bn_load(tmp_path: Path) -> None:
+    from relocdepth import checkpoint as ckpt_io
+
+    torch.manual_seed(0)
+    old = build_networks(ModelConfig())
+    # a checkpoint written before the option existed: no decoder_bn in its model config
+    _save_run(tmp_path / "old", {"pretrained": None, "use_dsc": True, "min_depth": 0.1, "max_depth": 100.0},
+              old.state_dict())
+    nets, _ = ckpt_io.load_for_inference(tmp_path / "old")
+    assert not nets.cfg.decoder_bn
+    assert torch.equal(nets.depth.decoder.upconv1[4].conv.bias, old.depth.decoder.upconv1[4].conv.bias)
+    with_bn = build_networks(ModelConfig(decoder_bn=True))
+    with_bn.depth(torch.rand(2, 3, 96, 128))  # moves the running statistics off their init
+    _save_run(tmp_path / "bn", {"pretrained": None, "use_dsc": True, "decoder_bn": True, "min_depth": 0.1,
+                                "max_depth": 100.0}, with_bn.state_dict())
+    nets, _ = ckpt_io.load_for_inference(tmp_path / "bn")
+    assert nets.cfg.decoder_bn
+    stats = nets.depth.decoder.upconv0[2].norm.running_var
+    assert torch.equal(stats, with_bn.depth.decoder.upconv0[2].norm.running_var)

@@ -35,6 +35,9 @@ class ModelConfig:
     pretrained: str | None = None  # None: random init; "imagenet": official URL; else a local .pth file
     use_dsc: bool = True  # False: the paper's "w/o DSC" ablation (absolute-pose head)
     relpose: bool = False  # a two-frame relative-pose network for the training bootstrap (not the paper's)
+    # Paper Sec. IV-B: batch normalisation "for all the layers except for the output layers"; the
+    # monodepth2 depth decoder has none, so off by default (checkpoints without it load unchanged).
+    decoder_bn: bool = False
     min_depth: float = 0.1
     max_depth: float = 100.0
 
@@ -47,7 +50,7 @@ class Networks(nn.Module):
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.depth = DepthNet()
+        self.depth = DepthNet(decoder_bn=cfg.decoder_bn)
         if cfg.use_dsc:
             self.dsc = DSCNet()
         else:

@@ -14,15 +14,18 @@ NUM_SCALES = 4
 
 
 class ConvBlock(nn.Module):
-    """3x3 conv with reflection padding + ELU (monodepth2's ``ConvBlock``)."""
+    """3x3 conv with reflection padding + ELU (monodepth2's ``ConvBlock``); with ``bn``, batch
+    normalisation between them (paper Sec. IV-B) and no conv bias (BN's shift replaces it).
+    Without ``bn`` the block has monodepth2's parameters and state-dict keys exactly."""
 
-    def __init__(self, cin: int, cout: int) -> None:
+    def __init__(self, cin: int, cout: int, bn: bool = False) -> None:
         super().__init__()
-        self.conv = nn.Conv2d(cin, cout, 3, padding=1, padding_mode="reflect")
+        self.conv = nn.Conv2d(cin, cout, 3, padding=1, padding_mode="reflect", bias=not bn)
+        self.norm: nn.Module = nn.BatchNorm2d(cout) if bn else nn.Identity()
         self.act = nn.ELU(inplace=True)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.act(self.conv(x))
+        return self.act(self.norm(self.conv(x)))
 
 
 class DepthDecoder(nn.Module):
@@ -30,18 +33,19 @@ class DepthDecoder(nn.Module):
 
     ``forward(features)`` (the 5 encoder maps) -> 4 sigmoid disparity maps, scale 0 first:
     ``(B, 1, H, W)``, ``(B, 1, H/2, W/2)``, ``(B, 1, H/4, W/4)``, ``(B, 1, H/8, W/8)``.
+    ``bn``: batch normalisation in every upconv block (not in the disparity outputs).
     """
 
-    def __init__(self, num_ch_enc: tuple[int, ...], num_scales: int = NUM_SCALES) -> None:
+    def __init__(self, num_ch_enc: tuple[int, ...], num_scales: int = NUM_SCALES, bn: bool = False) -> None:
         super().__init__()
         self.num_scales = num_scales
         self.upconv0 = nn.ModuleList()
         self.upconv1 = nn.ModuleList()
         for i in range(4, -1, -1):  # index k = 4 - i
             cin = num_ch_enc[-1] if i == 4 else NUM_CH_DEC[i + 1]
-            self.upconv0.append(ConvBlock(cin, NUM_CH_DEC[i]))
+            self.upconv0.append(ConvBlock(cin, NUM_CH_DEC[i], bn))
             cin = NUM_CH_DEC[i] + (num_ch_enc[i - 1] if i > 0 else 0)
-            self.upconv1.append(ConvBlock(cin, NUM_CH_DEC[i]))
+            self.upconv1.append(ConvBlock(cin, NUM_CH_DEC[i], bn))
         self.dispconv = nn.ModuleList(
             nn.Conv2d(NUM_CH_DEC[s], 1, 3, padding=1, padding_mode="reflect") for s in range(num_scales)
         )
@@ -61,12 +65,13 @@ class DepthDecoder(nn.Module):
 
 class DepthNet(nn.Module):
     """Encoder + decoder. ``forward(x (B, 3, H, W) in [0, 1])`` -> list of 4 sigmoid disparities,
-    scale 0 (full resolution) first; :func:`disp_to_depth` turns them into depth."""
+    scale 0 (full resolution) first; :func:`disp_to_depth` turns them into depth.
+    ``decoder_bn``: batch normalisation in the decoder (see :class:`DepthDecoder`)."""
 
-    def __init__(self, num_scales: int = NUM_SCALES) -> None:
+    def __init__(self, num_scales: int = NUM_SCALES, decoder_bn: bool = False) -> None:
         super().__init__()
         self.encoder = ResNet18Encoder()
-        self.decoder = DepthDecoder(self.encoder.num_ch_enc, num_scales)
+        self.decoder = DepthDecoder(self.encoder.num_ch_enc, num_scales, bn=decoder_bn)
 
     def forward(self, x: Tensor) -> list[Tensor]:
         return self.decoder(self.encoder(x))
