@@ -118,13 +118,18 @@ def scale_and_crop(img: np.ndarray, intr: Intrinsics, width: int, height: int, s
     """
     import cv2
 
-    sw, sh = max(width, round(width * scale)), max(height, round(height * scale))
+    sw, sh, x0, y0 = crop_box(width, height, scale, fx0, fy0)
     interp = cv2.INTER_AREA if sw < img.shape[1] else cv2.INTER_LINEAR
     if (sw, sh) != (img.shape[1], img.shape[0]):
         img = cv2.resize(img, (sw, sh), interpolation=interp)
-    x0, y0 = round(fx0 * (sw - width)), round(fy0 * (sh - height))
     out = np.ascontiguousarray(img[y0:y0 + height, x0:x0 + width])
     return out, intr.scaled(sw, sh).cropped(x0, y0, width, height)
+
+
+def crop_box(width: int, height: int, scale: float, fx0: float, fy0: float) -> tuple[int, int, int, int]:
+    """``(sw, sh, x0, y0)``: the size the image is resized to and the crop's corner (scale_and_crop)."""
+    sw, sh = max(width, round(width * scale)), max(height, round(height * scale))
+    return sw, sh, round(fx0 * (sw - width)), round(fy0 * (sh - height))
 
 
 def _gray(img: np.ndarray) -> np.ndarray:
@@ -185,6 +190,7 @@ class TripletData:
         geo = [(rng.uniform(cfg.scale_min, cfg.scale_max), rng.random(), rng.random()) for _ in idx]
         shared = draw_jitter(rng, cfg)
         images, inputs, Ks = [], [], []
+        boxes = [crop_box(cfg.width, cfg.height, *g) for g in geo]
         for i, (scale, fx0, fy0) in zip(idx, geo):
             f = self.frames.frames[i]
             try:
@@ -201,6 +207,7 @@ class TripletData:
             "inputs": np.stack(inputs).transpose(0, 3, 1, 2),
             "K": np.stack(Ks).astype(np.float32),  # (3, 3, 3)
             "index": np.array(idx, dtype=np.int64),
+            "crop": np.array(boxes, dtype=np.int64),  # (3, 4): resized size and crop corner per frame
             "is_global": t.is_global,
         }
         if self.two_view:
@@ -223,7 +230,7 @@ def collate(items: list[dict[str, Any]]) -> dict[str, Any]:
         "attempted": len(items),
     }
     if ok:
-        for k in ("images", "inputs", "K", "index", "two_view_T", "two_view_points", "two_view_ok"):
+        for k in ("images", "inputs", "K", "index", "crop", "two_view_T", "two_view_points", "two_view_ok"):
             if k in ok[0]:
                 batch[k] = torch.from_numpy(np.stack([it[k] for it in ok]))
         batch["global_frac"] = float(np.mean([it["is_global"] for it in ok]))

@@ -159,7 +159,8 @@ def _geometry_dtype(x: Tensor) -> torch.dtype:
 
 
 def triplet_loss(
-    nets: Networks, images: Tensor, inputs: Tensor, K: Tensor, cfg: MethodConfig, boot: Bootstrap | None = None
+    nets: Networks, images: Tensor, inputs: Tensor, K: Tensor, cfg: MethodConfig, boot: Bootstrap | None = None,
+    depth_override: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor], dict[str, float]]:
     """Training loss of a batch of triplets (loop-closed view synthesis).
 
@@ -171,6 +172,9 @@ def triplet_loss(
         K: ``(B, 3, 3, 3)`` per-image intrinsics at ``H x W``.
         cfg: loss options.
         boot: this step's relative-pose bootstrap, or None (the paper's loss).
+        depth_override: ``(B, 3, 1, H, W)`` depth used instead of the depth network's for the poses
+            and the warps (RESEARCH ONLY: the ground-truth depth oracle, which trains the pose half
+            alone); None: the network's.
 
     Returns:
         ``total`` (scalar), ``parts`` and ``diagnostics``.
@@ -208,12 +212,13 @@ def triplet_loss(
         with torch.set_grad_enabled(torch.is_grad_enabled() and boot.warps):
             T_boot = bootstrap_poses(nets, inputs, None if boot.T_wc is None else boot.T_wc.to(dt)).to(dt)
     with torch.autocast(images.device.type, enabled=False):
-        return _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot)
+        return _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot,
+                                  None if depth_override is None else depth_override.to(dt))
 
 
 def _triplet_loss_fp32(
     disps: list[Tensor], pose_out: Tensor, images: Tensor, K: Tensor, cfg: MethodConfig,
-    T_boot: Tensor | None = None, boot: Bootstrap | None = None,
+    T_boot: Tensor | None = None, boot: Bootstrap | None = None, depth_override: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor], dict[str, float]]:
     """The part of :func:`triplet_loss` after the networks (full precision)."""
     B, _, C, H, W = images.shape
@@ -230,6 +235,10 @@ def _triplet_loss_fp32(
         )
         for d in disps
     ]
+    if depth_override is not None:  # each scale's depth from the given one, at that scale's size
+        given = depth_override.reshape(B * 3, 1, H, W)
+        depths = [given if d.shape[-2:] == (H, W) else F.interpolate(given, d.shape[-2:], mode="nearest")
+                  for d in depths]
     T, _, _, l_c_img, q_img, c_img = _absolute_poses(pose_out, depths[0], Kf, cfg.use_dsc, "mean")
     T = T.reshape(B, 3, 4, 4)
     if T_boot is None and boot is not None and boot.active and boot.two_view is not None:

@@ -85,6 +85,9 @@ class TrainConfig:
     # learns them through a consistency term of weight w_bootstrap, which then fades out linearly over
     # bootstrap_fade_steps steps while the warps use the DSC poses (the paper's loss).
     bootstrap: str = "off"
+    # RESEARCH ONLY: the dataset's ground-truth depth replaces the depth network's in the poses and
+    # warps, so that the pose half learns alone (how fast can it learn when depth is right?).
+    oracle_gt_depth: bool = False
     bootstrap_steps: int = 0
     bootstrap_fade_steps: int = 500
     w_bootstrap: float = 1.0
@@ -199,6 +202,7 @@ class Trainer:
     model_cfg: Any
     log: TrainLog
     gt_poses: Any = None  # (N, 4, 4) float32 tensor of the research oracle, else None
+    gt_depths: Any = None  # list of (H, W) float32 depth maps of the research oracle, else None
 
 
 # -- setup -----------------------------------------------------------------------------------------
@@ -233,8 +237,8 @@ class _LossModule:
                 super().__init__()
                 self.nets = nets
 
-            def forward(self, images: Any, inputs: Any, K: Any, boot: Any = None) -> Any:
-                return triplet_loss(self.nets, images, inputs, K, method_cfg, boot)
+            def forward(self, images: Any, inputs: Any, K: Any, boot: Any = None, depth: Any = None) -> Any:
+                return triplet_loss(self.nets, images, inputs, K, method_cfg, boot, depth)
 
         return TripletLossModule()
 
@@ -282,12 +286,53 @@ def research_gt_poses(shards: str | Path, frames: ImageFrames) -> np.ndarray:
         ds.close()
 
 
+def research_gt_depths(shards: str | Path, frames: ImageFrames) -> list[np.ndarray]:
+    """RESEARCH ORACLE ONLY: the ground-truth depth maps (metres, stored size) of ``frames``, their
+    invalid pixels filled with the frame's median, for ``--oracle-gt-depth``. Refused (UserError)
+    on data without depth."""
+    from relocdepth.dataset import open_dataset
+    from relocdepth.remote import local_dataset
+
+    ds = open_dataset(local_dataset(shards))
+    try:
+        by_key = {r.key: r for r in ds.frames()}
+        missing = [f.key for f in frames.frames if not by_key[f.key].has_depth]
+        if missing:
+            raise UserError(f"--oracle-gt-depth needs ground-truth depth, and {len(missing)} training frames of "
+                            f"{shards} have none (first: {missing[0]})")
+        out = []
+        for f in frames.frames:
+            d = ds.read_depth(by_key[f.key])
+            valid = d > 0
+            out.append(np.where(valid, d, np.median(d[valid]) if valid.any() else 1.0).astype(np.float32))
+        return out
+    finally:
+        ds.close()
+
+
+def _oracle_depth_batch(gt: list[np.ndarray], index: Any, crop: Any, width: int, height: int) -> Any:
+    """The triplets' ground-truth depth ``(B, 3, 1, H, W)``, resized and cropped as their images were
+    (``crop`` rows: resized width, height, crop corner), nearest neighbour."""
+    import cv2
+    import torch
+
+    out = np.empty((*index.shape, 1, height, width), np.float32)
+    for b, i in np.ndindex(*index.shape):
+        sw, sh, x0, y0 = (int(v) for v in crop[b, i])
+        d = cv2.resize(gt[int(index[b, i])], (sw, sh), interpolation=cv2.INTER_NEAREST)
+        out[b, i, 0] = d[y0:y0 + height, x0:x0 + width]
+    return torch.from_numpy(out)
+
+
 def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer, RunState]:
     import torch
 
     frames = ImageFrames.open(shards)  # user errors before anything is written
     cfg, ck, ck_path = _resolve_config(cfg, run_dir)
     gt_poses = None
+    gt_depths = research_gt_depths(shards, frames) if cfg.oracle_gt_depth else None
+    if gt_depths is not None:
+        log.warning("RESEARCH ORACLE: ground-truth depth replaces the depth network's in poses and warps")
     if cfg.bootstrap == "oracle-gt":
         gt_poses = torch.from_numpy(research_gt_poses(shards, frames))
         log.warning("RESEARCH ORACLE: the warps of the first %d steps use ground-truth poses", cfg.bootstrap_steps)
@@ -330,7 +375,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs,
                     log_every=cfg.log_every)
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
-                 method_cfg, model_cfg, tlog, gt_poses)
+                 method_cfg, model_cfg, tlog, gt_poses, gt_depths)
     return tr, state
 
 
@@ -444,6 +489,7 @@ def sample(tr: Trainer, state: RunState, batch: dict[str, Any]) -> dict[str, Any
         "inputs": batch["inputs"].to(dev, non_blocking=nb).float().div_(255.0),
         "K": batch["K"].to(dev, non_blocking=nb),
         "index": batch["index"],
+        "crop": batch["crop"],
         **{k: batch[k].to(dev) for k in ("two_view_T", "two_view_points", "two_view_ok") if k in batch},
         "n": int(batch["images"].shape[0]),
         "global_frac": batch["global_frac"],
@@ -463,9 +509,13 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0) -> tuple[Any, 
         T_wc = None if tr.gt_poses is None else tr.gt_poses[b["index"]].to(tr.device)
         two_view = (b["two_view_T"], b["two_view_points"], b["two_view_ok"]) if "two_view_T" in b else None
         boot = Bootstrap(warps, w, T_wc, two_view)
+    depth = None
+    if tr.gt_depths is not None:
+        W, H = tr.cfg.size
+        depth = _oracle_depth_batch(tr.gt_depths, b["index"].numpy(), b["crop"].numpy(), W, H).to(tr.device)
     dtype = torch.bfloat16 if tr.cfg.amp_dtype == "bf16" else torch.float16
     with torch.autocast(tr.device.type, dtype=dtype, enabled=tr.cfg.amp):
-        return tr.loss_module(b["images"], b["inputs"], b["K"], boot)
+        return tr.loss_module(b["images"], b["inputs"], b["K"], boot, depth)
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
