@@ -95,6 +95,12 @@ def fetch_dataset(url: str, root: Path | None = None, progress: bool = True) -> 
                     raise UserError(f"{_join(url, name)}: {n} bytes, sha256 {got[:12]}..., but the "
                                     f"manifest says {size} bytes, {sha[:12]}...; the remote dataset is damaged")
                 bar.advance(task, n)
+        extra = manifest.get("parallax")  # the optional pair parallax table, checked like a shard
+        if extra:
+            n, got = _copy(_join(url, extra["file"]), tmp / extra["file"])
+            if n != int(extra["bytes"]) or got != extra["sha256"]:
+                raise UserError(f"{_join(url, extra['file'])}: {n} bytes, sha256 {got[:12]}..., but the manifest "
+                                f"says {extra['bytes']} bytes, {extra['sha256'][:12]}...; the remote dataset is damaged")
         write_json_atomic(tmp / WIDS_DESCRIPTOR, wids_descriptor(manifest))  # derived, not fetched
         if dest.exists():
             shutil.rmtree(dest, ignore_errors=True)

@@ -139,12 +139,14 @@ def test_a_few_steps_lower_the_loss(synth_shards: Path, tmp_path: Path) -> None:
     trips = list(tr.sampler.iter_epoch(0))[:2]
     b = sample(tr, state, collate([tr.data[t] for t in trips]))
     losses = []
-    for _ in range(6):  # the same batch: reliable descent on a shared CPU
+    for _ in range(12):  # the same batch: reliable descent on a shared CPU
         loss, _parts, diag = forward_losses(tr, b)
         losses.append(float(loss.detach()))
         assert optimizer_step(tr, state, loss)
     tr.log.close()
-    assert losses[-1] < losses[0]
+    # From random init the loss may first rise for a few steps on the kitchen scene (measured: up
+    # for 4 steps, below the start from step 7); after 12 it is clearly lower.
+    assert max(losses[-3:]) < losses[0]
     assert {"centre_spread", "valid_frac", "median_depth"} <= set(diag)
     assert isinstance(state, RunState)
 
