@@ -21,7 +21,8 @@ def synth(
         int, typer.Option(help="Training sequences (>= 2); one test sequence follows.")] = 2,
     force: Annotated[bool, typer.Option("--force", help="Replace OUT if it is not empty.")] = False,
 ) -> None:
-    """Generate a textured room with objects, rendered along handheld-like camera paths, with
+    """Generate a textured kitchen (counters, table, shelves, clutter near the camera), rendered
+    along handheld-like camera paths, with
     exact depth and poses: seq-XX/frame-XXXXXX.{color.png,depth.png,pose.txt}, split files,
     intrinsics.yaml and videos/seq-XX.mp4."""
     from rich.progress import (
