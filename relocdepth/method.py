@@ -330,8 +330,8 @@ def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor, T
     """The triplet's poses ``(B, 3, 4, 4)`` (middle frame = identity) from essential-matrix pairs.
 
     Each pair's unit translation is scaled by the median, over its triangulated points, of the
-    current depth of the middle frame (``depth_mid (B, 1, H, W)``, detached) at the point over the
-    point's depth in baselines: the translation in the depth network's units. A pair whose two-view
+    current depth of the middle frame (``depth_mid (B, 1, H, W)``, gradients flow) at the point over
+    the point's depth in baselines: the translation in the depth network's units. A pair whose two-view
     pose failed, or has no usable point, takes its relative pose from ``T_fallback (B, 3, 4, 4)``
     (the DSC's, detached).
     """
@@ -341,12 +341,19 @@ def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor, T
     x = points[..., 0] / (W - 1) * 2 - 1
     y = points[..., 1] / (H - 1) * 2 - 1
     grid = torch.stack((x, y), dim=-1).reshape(B, 2 * n, 1, 2).to(depth_mid.dtype)
-    d = F.grid_sample(depth_mid.detach(), torch.nan_to_num(grid, nan=0.0), align_corners=True)
-    ratio = d.reshape(B, 2, n) / points[..., 2].to(depth_mid.dtype)  # NaN where no point
+    # Not detached: the translation then scales with the depth, so the warps (and L_p) do not
+    # change with the depth's global scale, which monocular training cannot fix; with a detached
+    # scale every step pushes that scale, and it ran away (0.2 -> 11 units in 50 steps).
+    d = F.grid_sample(depth_mid, torch.nan_to_num(grid, nan=0.0), align_corners=True)
+    z = points[..., 2].to(depth_mid.dtype)
+    has = torch.isfinite(z)
+    # NaN where no point, without NaN gradients (0 x 1/NaN would be NaN)
+    ratio = torch.where(has, d.reshape(B, 2, n) / torch.where(has, z, torch.ones_like(z)), torch.nan)
     scale = torch.nanmedian(ratio, dim=-1).values  # (B, 2)
     usable = ok.bool() & torch.isfinite(scale) & (scale > 0)
-    T = T_1i.to(depth_mid.dtype).clone()
-    T[..., :3, 3] = T[..., :3, 3] * torch.nan_to_num(scale, nan=0.0).unsqueeze(-1)
+    T_1i = T_1i.to(depth_mid.dtype)
+    t = T_1i[..., :3, 3:] * torch.nan_to_num(scale, nan=0.0)[..., None, None]
+    T = torch.cat((torch.cat((T_1i[..., :3, :3], t), dim=-1), T_1i[..., 3:, :]), dim=-2)
     fallback = torch.stack((geo.relative_pose(T_fallback[:, 1], T_fallback[:, 0]),
                             geo.relative_pose(T_fallback[:, 1], T_fallback[:, 2])), dim=1).detach()
     T = torch.where(usable[..., None, None], T, fallback)

@@ -264,50 +264,41 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path) -> tuple[TrainConfig, dict 
     return dataclasses.replace(saved, **overrides), ck, latest
 
 
-def research_gt_poses(shards: str | Path, frames: ImageFrames) -> np.ndarray:
-    """RESEARCH ORACLE ONLY: the ground-truth poses ``(N, 4, 4)`` of ``frames``, in their order.
-
-    Training never reads ground truth otherwise (``ImageFrames`` holds none); this exists for
-    ``--bootstrap oracle-gt``, which measures what depth learns when the warps get true relative
-    poses. Refused (UserError) on data without poses.
-    """
+def _research_ground_truth(shards: str | Path, frames: ImageFrames, kind: str, option: str) -> list[Any]:
+    """RESEARCH ORACLES ONLY: the ground truth (``kind`` "pose" or "depth") of ``frames``, in their
+    order. Training never reads ground truth otherwise (``ImageFrames`` holds none); the oracles
+    measure what one half of the method learns when the other half is right. Refused (UserError,
+    naming ``option``) on data without it."""
     from relocdepth.dataset import open_dataset
     from relocdepth.remote import local_dataset
 
     ds = open_dataset(local_dataset(shards))
     try:
         by_key = {r.key: r for r in ds.frames()}
-        missing = [f.key for f in frames.frames if not by_key[f.key].has_pose]
+        missing = [f.key for f in frames.frames if not getattr(by_key[f.key], f"has_{kind}")]
         if missing:
-            raise UserError(f"--bootstrap oracle-gt needs ground-truth poses, and {len(missing)} training frames "
-                            f"of {shards} have none (first: {missing[0]}); use --bootstrap posenet")
-        return np.stack([ds.read_pose(by_key[f.key]) for f in frames.frames]).astype(np.float32)
+            raise UserError(f"{option} needs ground-truth {kind}s, and {len(missing)} training frames of {shards} "
+                            f"have none (first: {missing[0]})")
+        read = ds.read_pose if kind == "pose" else ds.read_depth
+        return [read(by_key[f.key]) for f in frames.frames]
     finally:
         ds.close()
+
+
+def research_gt_poses(shards: str | Path, frames: ImageFrames) -> np.ndarray:
+    """The ground-truth poses ``(N, 4, 4)`` of ``frames`` for ``--bootstrap oracle-gt`` (what depth
+    learns when the warps get true relative poses); see :func:`_research_ground_truth`."""
+    return np.stack(_research_ground_truth(shards, frames, "pose", "--bootstrap oracle-gt")).astype(np.float32)
 
 
 def research_gt_depths(shards: str | Path, frames: ImageFrames) -> list[np.ndarray]:
-    """RESEARCH ORACLE ONLY: the ground-truth depth maps (metres, stored size) of ``frames``, their
-    invalid pixels filled with the frame's median, for ``--oracle-gt-depth``. Refused (UserError)
-    on data without depth."""
-    from relocdepth.dataset import open_dataset
-    from relocdepth.remote import local_dataset
-
-    ds = open_dataset(local_dataset(shards))
-    try:
-        by_key = {r.key: r for r in ds.frames()}
-        missing = [f.key for f in frames.frames if not by_key[f.key].has_depth]
-        if missing:
-            raise UserError(f"--oracle-gt-depth needs ground-truth depth, and {len(missing)} training frames of "
-                            f"{shards} have none (first: {missing[0]})")
-        out = []
-        for f in frames.frames:
-            d = ds.read_depth(by_key[f.key])
-            valid = d > 0
-            out.append(np.where(valid, d, np.median(d[valid]) if valid.any() else 1.0).astype(np.float32))
-        return out
-    finally:
-        ds.close()
+    """The ground-truth depth maps (metres, stored size) of ``frames`` for ``--oracle-gt-depth``, their
+    invalid pixels filled with the frame's median; see :func:`_research_ground_truth`."""
+    out = []
+    for d in _research_ground_truth(shards, frames, "depth", "--oracle-gt-depth"):
+        valid = d > 0
+        out.append(np.where(valid, d, np.median(d[valid]) if valid.any() else 1.0).astype(np.float32))
+    return out
 
 
 def _oracle_depth_batch(gt: list[np.ndarray], index: Any, crop: Any, width: int, height: int) -> Any:
@@ -519,7 +510,8 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0) -> tuple[Any, 
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
-    """Named step: backward + Adam unless the loss is non-finite on any rank (then skip, count)."""
+    """Named step: backward + Adam unless the loss is non-finite on any rank, or a gradient is
+    non-finite (then skip, count)."""
     import torch
 
     nonfinite = any_rank(tr.dist, [not bool(torch.isfinite(loss.detach()).item())], tr.device)[0]
@@ -534,10 +526,27 @@ def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
         tr.log.event("nonfinite_loss", state.step, streak=state.nonfinite_streak, loss=float(loss.detach()))
         return False
     tr.scaler.scale(loss).backward()
+    # A finite loss can still have non-finite gradients (e.g. a 0/0 in a backward pass): those
+    # must not reach the weights either. After DDP's all-reduce every rank sees the same gradients,
+    # so every rank decides alike. (The fp16 GradScaler checks and skips on its own.)
+    if not tr.scaler.is_enabled() and not _gradients_finite(tr.nets):
+        tr.optimizer.zero_grad(set_to_none=True)
+        state.nonfinite_skipped += 1
+        state.nonfinite_streak += 1
+        log.warning("non-finite gradient at step %d: step skipped (%d in a row)", state.step, state.nonfinite_streak)
+        tr.log.event("nonfinite_gradient", state.step, streak=state.nonfinite_streak)
+        return False
     tr.scaler.step(tr.optimizer)
     tr.scaler.update()
     state.nonfinite_streak = 0
     return True
+
+
+def _gradients_finite(module: Any) -> bool:
+    import torch
+
+    grads = [p.grad for p in module.parameters() if p.grad is not None]
+    return not grads or bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())
 
 
 def log_step(tr: Trainer, state: RunState, loss: Any, parts: dict[str, Any], diag: dict[str, float],

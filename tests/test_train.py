@@ -259,6 +259,34 @@ def test_nonfinite_losses_skip_then_stop(synth_shards: Path, tmp_path: Path, mon
     assert all(torch.equal(before[k], after[k]) for k in before)
 
 
+def test_nonfinite_gradients_of_a_finite_loss_never_reach_the_weights(synth_shards: Path, tmp_path: Path,
+                                                                      monkeypatch) -> None:
+    import relocdepth.train as T
+
+    real = T.forward_losses
+
+    def nan_gradient(tr, b, *rest):
+        loss, parts, diag = real(tr, b, *rest)
+        w = next(tr.nets.parameters())
+        return loss + 0.0 * torch.sqrt(w.sum() - w.sum()), parts, diag  # forward 0, backward 0 x inf
+
+    monkeypatch.setattr(T, "forward_losses", nan_gradient)
+    tr, state = T.setup(synth_shards, tmp_path / "run", _cfg())
+    trips = list(tr.sampler.iter_epoch(0))[:1]
+    from relocdepth.data import collate
+
+    b = T.sample(tr, state, collate([tr.data[t] for t in trips]))
+    before = {k: v.clone() for k, v in tr.nets.state_dict().items()}
+    loss, _, _ = T.forward_losses(tr, b)
+    assert bool(torch.isfinite(loss))  # finite, but its gradient is NaN
+    assert not T.optimizer_step(tr, state, loss)
+    tr.log.close()
+    assert state.nonfinite_skipped == 1
+    after = tr.nets.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before if before[k].is_floating_point()
+               and "running" not in k)
+
+
 # -- processes -------------------------------------------------------------------------------------
 def _reloc(*args: str) -> list[str]:
     return [sys.executable, "-m", "relocdepth.cli", "train", *args]

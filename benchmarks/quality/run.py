@@ -62,7 +62,8 @@ CPU_ALL = CPU + ["--photometric-pixels", "all"]
 CPU_SCHEDULE = CPU_ALL + ["--window-schedule", "0:3,8:10,16:20"]
 # Rows of the named recipes (relocdepth.recipes, the ones `reloc train --recipe` and the demo use).
 # `oracle-gt`: ground-truth poses drive the warps throughout (a research ceiling for depth: what
-# it learns when the poses are right). `cpu-bootstrap`: the two-frame pose network drives them for
+# it learns when the poses are right); `oracle-gt-depth`: ground-truth depth in the poses and
+# warps (what the pose half learns when depth is right). `cpu-bootstrap`: the two-frame pose network drives them for
 # the first steps, then the DSC (the paper's loss) with the consistency term fading out.
 RECIPES: dict[str, list[str]] = {
     "paper": PAPER,
@@ -73,6 +74,7 @@ RECIPES: dict[str, list[str]] = {
     "no-dsc": CPU + ["--no-dsc"],
     "demo": DEMO,
     "oracle-gt": ["--recipe", "cpu", "--bootstrap", "oracle-gt", "--bootstrap-steps", "100000000"],
+    "oracle-gt-depth": ["--recipe", "cpu", "--oracle-gt-depth"],
     "cpu-bootstrap": ["--recipe", "cpu-bootstrap"],
     "cpu-essential": ["--recipe", "cpu-bootstrap", "--bootstrap", "essential"],
     "cpu-bootstrap-w10": ["--recipe", "cpu-bootstrap", "--window", "10"],

@@ -15,21 +15,27 @@ HEAD_CHANNELS = 256
 OUTPUT_INIT_STD = 1e-3
 
 
+def pose_decoder(cin: int) -> nn.Sequential:
+    """monodepth2's pose decoder: 1x1 squeeze, two 3x3 convs with ReLU, 1x1 -> 6 (its caller takes
+    the spatial mean). ``(B, cin, h, w)`` -> ``(B, 6, h, w)``."""
+    return nn.Sequential(
+        nn.Conv2d(cin, HEAD_CHANNELS, 1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(HEAD_CHANNELS, HEAD_CHANNELS, 3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(HEAD_CHANNELS, HEAD_CHANNELS, 3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(HEAD_CHANNELS, 6, 1),
+    )
+
+
 class AbsPoseNet(nn.Module):
     """``forward(x (B, 3, H, W) in [0, 1])`` -> ``(B, 6)`` = ``[axis-angle of R_wc, camera centre]``."""
 
     def __init__(self) -> None:
         super().__init__()
         self.encoder = ResNet18Encoder()
-        self.head = nn.Sequential(
-            nn.Conv2d(self.encoder.num_ch_enc[-1], HEAD_CHANNELS, 1),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(HEAD_CHANNELS, HEAD_CHANNELS, 3, padding=1),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(HEAD_CHANNELS, HEAD_CHANNELS, 3, padding=1),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(HEAD_CHANNELS, 6, 1),
-        )
+        self.head = pose_decoder(self.encoder.num_ch_enc[-1])
         nn.init.normal_(self.head[-1].weight, std=OUTPUT_INIT_STD)
         nn.init.zeros_(self.head[-1].bias)
 

@@ -15,8 +15,8 @@ from torch import Tensor, nn
 
 from relocdepth.geometry import so3_exp
 from relocdepth.models.encoder import ResNet18Encoder
+from relocdepth.models.pose import pose_decoder
 
-HEAD_CHANNELS = 256
 # monodepth2 multiplies the decoder's mean output by 0.01: small first motions, well-scaled gradients.
 OUTPUT_SCALE = 0.01
 
@@ -29,15 +29,7 @@ class RelPoseNet(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self.encoder = ResNet18Encoder(num_images=2)
-        self.head = nn.Sequential(
-            nn.Conv2d(self.encoder.num_ch_enc[-1], HEAD_CHANNELS, 1),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(HEAD_CHANNELS, HEAD_CHANNELS, 3, padding=1),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(HEAD_CHANNELS, HEAD_CHANNELS, 3, padding=1),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(HEAD_CHANNELS, 6, 1),
-        )
+        self.head = pose_decoder(self.encoder.num_ch_enc[-1])
 
     def vector(self, x_a: Tensor, x_b: Tensor) -> Tensor:
         """``(B, 6)`` = ``[axis-angle, translation]`` of ``T_ab``."""
