@@ -1,4 +1,4 @@
-"""Localize latency per image vs the bare forward of the two networks, measured in one run (issue 5).
+"""Localize latency per image vs the bare forward of the two networks, measured in one run.
 
 For each network input size (640x480, 256x192) a checkpoint is written through the project's
 checkpoint API (freshly built networks, random init: the cost does not depend on the weights)
@@ -36,7 +36,7 @@ from dataclasses import asdict
 from datetime import datetime, timezone
 from pathlib import Path
 
-GOAL = 1.2  # issue 5: localize <= 1.2x the bare forward
+GOAL = 1.2  # localize <= 1.2x the bare forward
 
 
 def make_checkpoint(run: Path, w: int, h: int) -> Path:

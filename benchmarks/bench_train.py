@@ -1,4 +1,4 @@
-"""Trainer benchmarks, printed as ratios measured in one run (issue 4).
+"""Trainer benchmarks, printed as ratios measured in one run.
 
 (a) loader triplets/s (read + decode + augment + collate, batch 6) at 128x96 and 640x480 with
     0/1/2 workers vs the triplets/s a train step consumes at that size; plus the streaming

@@ -48,7 +48,7 @@ class SamplerConfig:
     global_epochs: int = 100  # paper IV-B: global pairs "in the latter 100 epochs"
     global_prob: float = 0.5  # paper IV-B: "for 50 %"
     seed: int = 0
-    # Issue 6 hook: ((from_epoch, window), ...) overrides `window` from each epoch on; () = constant.
+    # ((from_epoch, window), ...) overrides `window` from each epoch on (coarse-to-fine); () = constant.
     window_schedule: tuple[tuple[int, int], ...] = ()
     # Sources need this much pair parallax (px at the training size) to the target; None: paper.
     min_parallax: float | None = None

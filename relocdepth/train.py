@@ -56,10 +56,10 @@ class TrainConfig:
     beta1: float = 0.9  # paper IV-B: beta1 = 0.9
     beta2: float = 0.999  # paper IV-B: beta2 = 0.999
     window: int = 20  # paper IV-B: nearby frames within 20 steps
-    window_seconds: float | None = None  # issue 4: window from timestamps instead of frames
+    window_seconds: float | None = None  # the window from timestamps instead of frame indices
     global_epochs: int = 100  # paper IV-B: global pairs in the latter 100 epochs
     global_prob: float = 0.5  # paper IV-B: ... for 50 %
-    window_schedule: tuple[tuple[int, int], ...] = ()  # issue 6 hook: ((epoch, window), ...)
+    window_schedule: tuple[tuple[int, int], ...] = ()  # ((epoch, window), ...): window by epoch
     min_parallax: float | None = None  # sources need this pair parallax (px at `size`); None: paper
     scale_min: float = 1.0  # paper IV-B: scale 1.0-1.1 and crop back
     scale_max: float = 1.1
@@ -102,7 +102,7 @@ class TrainConfig:
     log_every: int = 10  # JSONL/TensorBoard every N steps
     checkpoint_every: int = 500  # steps between checkpoints (plus one at the end)
     keep_last: int = 3  # checkpoints kept (older ones deleted)
-    max_nonfinite: int = 20  # issue 4: this many non-finite losses in a row stop the run
+    max_nonfinite: int = 20  # this many non-finite steps in a row stop the run
     progress: bool = True  # rich progress bar on rank 0
     resume: bool = False  # continue the run in run_dir from its latest checkpoint
 

@@ -1,4 +1,4 @@
-"""How many pixels of warp does depth explain, for frames k apart? (issue 6, trial 4)
+"""How many pixels of warp does depth explain, for frames k apart?
 
 Photometric losses learn depth only from the part of the warp that depth changes. For target
 frames t and sources s = t + k of a dataset with ground-truth depth and poses (shards written by
