@@ -11,7 +11,7 @@ row reaches) to ``--out``.
     python benchmarks/quality/run.py [--budget-min 15] [--rows paper,cpu,no-lcvs,no-dsc,...]
                                      [--threads 1] [--out /tmp/quality] [--redo] [--parallel 2]
     python benchmarks/quality/run.py --data ../shared/data/hololens-office --size 192x128 \
-                                     --rows oracle-gt,posenet --out /tmp/quality-holo
+                                     --rows oracle-gt,cpu-bootstrap --out /tmp/quality-holo
 
 Every training and evaluation is a child process (``reloc train`` / ``reloc evaluate``) with
 ``threads`` torch threads; ``--parallel N`` trains N rows at once (on 2 cores: 2 rows of 1
@@ -63,8 +63,9 @@ CPU_SCHEDULE = CPU_ALL + ["--window-schedule", "0:3,8:10,16:20"]
 # Rows of the named recipes (relocdepth.recipes, the ones `reloc train --recipe` and the demo use).
 # `oracle-gt`: ground-truth poses drive the warps throughout (a research ceiling for depth: what
 # it learns when the poses are right); `oracle-gt-depth`: ground-truth depth in the poses and
-# warps (what the pose half learns when depth is right). `cpu-bootstrap`: the two-frame pose network drives them for
-# the first steps, then the DSC (the paper's loss) with the consistency term fading out.
+# warps (what the pose half learns when depth is right). `cpu-bootstrap`: the essential-matrix
+# bootstrap drives them for the first steps, then the DSC (the paper's loss) with the consistency
+# term fading out; `cpu-posenet` the same with the two-frame pose network.
 RECIPES: dict[str, list[str]] = {
     "paper": PAPER,
     "cpu": CPU,
@@ -76,6 +77,8 @@ RECIPES: dict[str, list[str]] = {
     "oracle-gt": ["--recipe", "cpu", "--bootstrap", "oracle-gt", "--bootstrap-steps", "100000000"],
     "oracle-gt-depth": ["--recipe", "cpu", "--oracle-gt-depth"],
     "cpu-bootstrap": ["--recipe", "cpu-bootstrap"],
+    "cpu-bootstrap-decoder": ["--recipe", "cpu-bootstrap", "--loss-resolution", "decoder"],
+    "cpu-posenet": ["--recipe", "cpu-posenet"],
     "cpu-essential": ["--recipe", "cpu-bootstrap", "--bootstrap", "essential"],
     "cpu-bootstrap-w10": ["--recipe", "cpu-bootstrap", "--window", "10"],
     "cpu-bootstrap-no-lcvs": ["--recipe", "cpu-bootstrap", "--no-lcvs"],
