@@ -30,7 +30,7 @@ CONF_ROT_DEG = 5.0
 CONF_TRANS_REL = 0.05
 
 __all__ = ["LOSS_RESOLUTIONS", "PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "Bootstrap", "MethodConfig",
-           "bootstrap_poses", "pairs_for", "predict", "triplet_loss", "two_view_poses"]
+           "bootstrap_poses", "pairs_for", "predict", "preview", "triplet_loss", "two_view_poses"]
 
 # (target, source) frame indices of a triplet; the middle frame is index 1.
 PAIRS_LCVS: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
@@ -392,6 +392,21 @@ def _diagnostics(
         "cell_spread": float(l_c.detach().mean()) if l_c is not None else 0.0,
         "median_depth": float(depth0.detach().median()),
     }
+
+
+@torch.no_grad()
+def preview(nets: Networks, images: Tensor, inputs: Tensor, K: Tensor, cfg: MethodConfig) -> dict[str, Tensor]:
+    """What the first triplet of a batch looks like to the method (for TensorBoard): the middle
+    frame ``target (3, H, W)``, its ``depth (H, W)``, and ``warped (3, H, W)``, the target
+    synthesised from the first source with the DSC's (or w/o DSC the pose head's) poses."""
+    x = inputs[:1].reshape(3, *inputs.shape[2:])
+    dt = _geometry_dtype(images)
+    depth = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
+    pose_out = (nets.dsc(x) if cfg.use_dsc else nets.pose(x)).to(dt)
+    T = _absolute_poses(pose_out, depth, K[0].to(dt), cfg.use_dsc, "mean")[0]
+    warped, _ = geo.warp(images[0, 0:1].to(dt), depth[1:2], geo.relative_pose(T[1:2], T[0:1]),
+                         K[0, 1:2].to(dt), K[0, 0:1].to(dt))
+    return {"target": images[0, 1], "depth": depth[1, 0], "warped": warped[0]}
 
 
 @torch.no_grad()

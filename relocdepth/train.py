@@ -561,6 +561,18 @@ def log_step(tr: Trainer, state: RunState, loss: Any, parts: dict[str, Any], dia
     })
 
 
+def log_images(tr: Trainer, state: RunState, b: dict[str, Any]) -> None:
+    """Named step: the first triplet's target, depth and DSC-warped source in TensorBoard."""
+    from relocdepth.method import preview
+
+    was_training = tr.nets.training
+    try:
+        view = preview(tr.nets, b["images"], b["inputs"], b["K"], tr.method_cfg)
+    finally:
+        tr.nets.train(was_training)
+    tr.log.images(state.step, {f"train/{k}": v for k, v in view.items()})
+
+
 # -- the loop --------------------------------------------------------------------------------------
 class _StopRequest:
     """First Ctrl-C / SIGTERM asks to stop after the current step; a second one aborts."""
@@ -639,6 +651,8 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
             cur_loss = None if no_data else float(loss.detach())
             if not no_data and (state.step % cfg.log_every == 0 or state.step == 1):
                 log_step(tr, state, loss, parts, diag, rate, b["global_frac"])
+            if not no_data and tr.log.wants_images(state.step):
+                log_images(tr, state, b)
             tr.log.tick(state.step, state.epoch, cur_loss, rate)
             if state.step % cfg.checkpoint_every == 0:
                 checkpoint(tr, state)

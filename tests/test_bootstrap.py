@@ -261,3 +261,21 @@ def test_two_view_poses_scale_translation_by_depth_and_fall_back() -> None:
     # The failed pair takes the DSC's relative pose.
     assert torch.allclose(geo.relative_pose(got[1, 1:2], got[1, 2:3]),
                           geo.relative_pose(dsc[1, 1:2], dsc[1, 2:3]), atol=1e-5)
+
+
+def test_preview_warps_the_target_from_a_source() -> None:
+    """The TensorBoard preview: with the DSC near identity at init, the warped source stays close
+    to the source itself, and every output has the documented shape."""
+    from relocdepth.method import preview
+
+    torch.manual_seed(0)
+    nets = Networks(ModelConfig())
+    smooth = torch.nn.functional.interpolate(torch.rand(6, 3, H // 8, W // 8), (H, W), mode="bilinear")
+    imgs = smooth.reshape(2, 3, 3, H, W)
+    view = preview(nets, imgs, imgs, _K(2), MethodConfig())
+    assert view["target"].shape == (3, H, W) and torch.equal(view["target"], imgs[0, 1])
+    assert view["depth"].shape == (H, W) and bool((view["depth"] > 0).all())
+    assert view["warped"].shape == (3, H, W)
+    # near-identity relative pose: the warp resamples the source, which differs from the target
+    gap = float((imgs[0, 1] - imgs[0, 0]).abs().mean())
+    assert float((view["warped"] - imgs[0, 0]).abs().mean()) < 0.5 * gap
