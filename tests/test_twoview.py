@@ -59,35 +59,35 @@ def test_recovers_rendered_relative_pose(move: np.ndarray, turn: tuple[float, fl
     assert abs(np.linalg.norm(pose.t) - 1.0) < 1e-9
 
 
+def _points_and_yaw(seed: int, n: int, z: tuple[float, float], yaw_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` random points in front of a camera (depth in ``z``) and a rotation about the y axis."""
+    rng = np.random.default_rng(seed)
+    X = np.c_[rng.uniform(-1.5, 1.5, n), rng.uniform(-1, 1, n), rng.uniform(*z, n)]
+    a = np.radians(yaw_deg)
+    return X, np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+
+def _project(X: np.ndarray) -> np.ndarray:
+    x = X @ INTR.K().T
+    return x[:, :2] / x[:, 2:]
+
+
 def test_points_in_camera_a_map_into_camera_b() -> None:
     """Synthetic correspondences: X_b = R X_a + t with the returned (R, t) (direction of t)."""
-    rng = np.random.default_rng(1)
     K = INTR.K()
-    X_a = np.c_[rng.uniform(-1.5, 1.5, 200), rng.uniform(-1, 1, 200), rng.uniform(2, 6, 200)]
-    a = np.radians(5.0)
-    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    X_a, R = _points_and_yaw(1, 200, (2, 6), 5.0)
     t = np.array([0.3, -0.05, 0.1])
     X_b = X_a @ R.T + t
-
-    def project(X: np.ndarray) -> np.ndarray:
-        x = X @ K.T
-        return x[:, :2] / x[:, 2:]
-
-    pose = relative_pose_essential(project(X_a), project(X_b), K)
+    pose = relative_pose_essential(_project(X_a), _project(X_b), K)
     assert rotation_angle_deg(pose.R.T @ R) < 0.05
     assert _angle_deg(pose.t, t) < 0.2
 
 
 def test_homography_residual_zero_for_rotation_positive_for_translation() -> None:
-    rng = np.random.default_rng(2)
-    K = INTR.K()
-    X = np.c_[rng.uniform(-1.5, 1.5, 300), rng.uniform(-1, 1, 300), rng.uniform(1, 5, 300)]
-    a = np.radians(4.0)
-    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    X, R = _points_and_yaw(2, 300, (1, 5), 4.0)
 
     def project(X: np.ndarray) -> np.ndarray:
-        x = X @ K.T
-        return (x[:, :2] / x[:, 2:]).astype(np.float32)
+        return _project(X).astype(np.float32)
 
     assert homography_residual(project(X), project(X @ R.T), 1.0) < 0.01
     moved = homography_residual(project(X), project(X @ R.T + [0.1, 0, 0]), 1.0)
