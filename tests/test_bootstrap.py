@@ -210,7 +210,7 @@ def test_recipes_config_files_and_explicit_options_layer(synth_shards: Path, tmp
                             "--window", "5", *common])
     assert r.exit_code == 0, r.output
     a = trained("a")
-    assert a["lr"] == 3e-4 and a["photometric_pixels"] == "all" and a["bootstrap"] == "posenet"
+    assert a["lr"] == 3e-4 and a["photometric_pixels"] == "all" and a["bootstrap"] == RECIPES["cpu-bootstrap"]["bootstrap"]
     assert a["size"] == [128, 96] and a["bootstrap_steps"] == RECIPES["cpu-bootstrap"]["bootstrap_steps"]
     assert a["window"] == 5  # given here: overrides the recipe's 3
     # The run's own config.json repeats it (same training fields), with options still on top.
