@@ -364,7 +364,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
         }, sort_keys=True)
     total = _total_steps(sampler, cfg)
     tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs,
-                    log_every=cfg.log_every)
+                    log_every=cfg.log_every, max_seconds=None if cfg.max_minutes is None else 60.0 * cfg.max_minutes)
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
                  method_cfg, model_cfg, tlog, gt_poses, gt_depths)
     return tr, state

@@ -48,9 +48,10 @@ class TrainLog:
     def __init__(self, run_dir: Path | None, progress: bool = False, total_steps: int = 0,
                  start_step: int = 0, epochs: int = 0, log_every: int = 10,
                  images_every: int = IMAGES_EVERY, plain: bool | None = None,
-                 stream: TextIO | None = None) -> None:
+                 stream: TextIO | None = None, max_seconds: float | None = None) -> None:
         """``plain``: plain progress lines instead of a bar (default: when stderr is not a
-        terminal); ``stream``: where they go (default: stderr)."""
+        terminal); ``stream``: where they go (default: stderr); ``max_seconds``: a wall-clock
+        budget, which caps the ETA of the plain lines."""
         from relocdepth.progress import stderr_console, stderr_is_terminal
 
         self.enabled = run_dir is not None
@@ -60,6 +61,7 @@ class TrainLog:
         self._task = None
         self.epochs = epochs
         self.total_steps = total_steps
+        self.max_seconds = max_seconds
         self.log_every = max(int(log_every), 1)
         self.images_every = max(int(images_every), 1)
         self._plain = False
@@ -157,7 +159,10 @@ class TrainLog:
         elapsed = time.monotonic() - self._t0
         done = step - self._step0
         left = max(self.total_steps - step, 0)
-        eta = format_duration(left * elapsed / done) if done > 0 else "-"
+        eta_s = left * elapsed / done if done > 0 else None
+        if self.max_seconds is not None:  # the trainer stops itself at its wall-clock budget
+            eta_s = max(self.max_seconds - elapsed, 0.0) if eta_s is None else min(eta_s, max(self.max_seconds - elapsed, 0.0))
+        eta = format_duration(eta_s) if eta_s is not None else "-"
         parts = [f"step {step}/{self.total_steps}", f"epoch {epoch + 1}/{self.epochs}",
                  "loss -" if loss is None else f"loss {loss:.4f}",
                  "- triplets/s" if rate is None else f"{rate:.1f} triplets/s", f"ETA {eta}"]

@@ -88,6 +88,17 @@ def test_trainlog_plain_lines_every_log_every_steps(tmp_path: Path, clock: Clock
     ]
 
 
+def test_trainlog_eta_is_capped_by_the_wall_clock_budget(tmp_path: Path, clock: Clock) -> None:
+    out = io.StringIO()
+    tl = TrainLog(tmp_path, progress=True, total_steps=1000, epochs=4, log_every=10, plain=True, stream=out,
+                  max_seconds=12.0)
+    for step in range(1, 21):
+        clock.t += 0.5  # 2 steps/s: 990 steps left would take 495 s, but the budget ends at 12 s
+        tl.tick(step, epoch=0, loss=0.5, rate=12.0)
+    tl.close()
+    assert [line.rsplit("ETA ", 1)[1] for line in out.getvalue().splitlines()] == ["0:00:07", "0:00:02"]
+
+
 def test_trainlog_other_ranks_print_nothing(clock: Clock) -> None:
     out = io.StringIO()
     tl = TrainLog(None, progress=True, total_steps=5, log_every=1, plain=True, stream=out)
