@@ -109,7 +109,7 @@ def train(
     bootstrap_steps: Annotated[int, typer.Option("--bootstrap-steps", help="Steps during which the bootstrap's poses drive the warps; then the DSC poses do (the paper's loss).")] = 0,
     bootstrap_fade_steps: Annotated[int, typer.Option("--bootstrap-fade-steps", help="Steps over which the DSC-vs-bootstrap consistency term fades to 0 after the hand-over.")] = 500,
     w_bootstrap: Annotated[float, typer.Option("--w-bootstrap", help="Weight of the DSC-vs-bootstrap relative-pose consistency term.")] = 1.0,
-    loss_resolution: Annotated[str, typer.Option("--loss-resolution", help="Each scale's L_p at the input size ('input', monodepth2: disparity upsampled) or at its decoder layer's size ('decoder', the paper: images downsampled, K scaled).")] = "input",
+    loss_resolution: Annotated[str, typer.Option("--loss-resolution", help="Each scale's L_p at its decoder layer's size ('decoder', the paper: images downsampled, K scaled; default) or at the input size ('input', monodepth2: disparity upsampled).")] = "decoder",
     decoder_bn: Annotated[bool, typer.Option("--decoder-bn", help="Batch normalisation in the depth decoder's conv blocks (the paper; monodepth2 has none).")] = False,
     log_every: Annotated[int, typer.Option("--log-every", help="Write logs/train.jsonl every N steps.")] = 10,
     checkpoint_every: Annotated[int, typer.Option("--checkpoint-every", help="Steps between checkpoints.")] = 500,

@@ -61,8 +61,9 @@ class MethodConfig:
     recompute_warps: bool = False
     # Resolution of each scale's warp and L_p: "input" (monodepth2: the scale's disparity upsampled
     # to the input size) or "decoder" (paper Sec. III-B: "at the resolution of each decoder's
-    # layer": images area-downsampled and K scaled to the scale's own size).
-    loss_resolution: str = "input"
+    # layer": images area-downsampled and K scaled to the scale's own size; the default: it learned
+    # as well as "input" at equal steps in the measured rows and its steps take 0.64-0.69x the time).
+    loss_resolution: str = "decoder"
     min_depth: float = 0.1
     max_depth: float = 100.0
 

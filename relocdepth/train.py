@@ -76,7 +76,7 @@ class TrainConfig:
     w_c: float = 0.03  # paper IV-B: pose coordinate weight
     photometric_pixels: str = "valid"  # L_p over "valid" pixels (DESIGN.md) or "all" (monodepth2)
     recompute_warps: bool = False  # checkpoint the warps/SSIM: less memory, a little more time
-    loss_resolution: str = "input"  # paper III-B: "decoder" (each layer's size); "input": monodepth2
+    loss_resolution: str = "decoder"  # paper III-B: each decoder layer's size; "input": monodepth2
     decoder_bn: bool = False  # paper IV-B: BN in the depth decoder too (monodepth2: none)
     # Relative-pose bootstrap (not in the paper; README, fidelity): for the first bootstrap_steps the
     # warps use relative poses from "posenet" (a two-frame network trained by the same photometric

@@ -368,10 +368,10 @@ def test_train_options_reach_the_method_and_networks(tmp_path: Path) -> None:
 
     from relocdepth.train import TrainConfig, _method_and_model_configs
 
-    method_cfg, model_cfg = _method_and_model_configs(TrainConfig(loss_resolution="decoder", decoder_bn=True))
-    assert method_cfg.loss_resolution == "decoder" and model_cfg.decoder_bn
-    method_cfg, model_cfg = _method_and_model_configs(TrainConfig())
-    assert method_cfg.loss_resolution == "input" and not model_cfg.decoder_bn
+    method_cfg, model_cfg = _method_and_model_configs(TrainConfig(loss_resolution="input", decoder_bn=True))
+    assert method_cfg.loss_resolution == "input" and model_cfg.decoder_bn
+    method_cfg, model_cfg = _method_and_model_configs(TrainConfig())  # the paper's: each layer's size
+    assert method_cfg.loss_resolution == "decoder" and not model_cfg.decoder_bn
     run = tmp_path / "run"
     res = CliRunner().invoke(app, ["train", str(tmp_path), "-o", str(run), "--loss-resolution", "output"])
     assert res.exit_code == 2 and "--loss-resolution must be one of input, decoder" in res.output
