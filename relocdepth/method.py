@@ -113,9 +113,14 @@ def bootstrap_poses(nets: Networks, inputs: Tensor, T_wc: Tensor | None = None) 
     B = inputs.shape[0]
     mid = inputs[:, 1]
     T_1i = nets.relpose(torch.cat((mid, mid)), torch.cat((inputs[:, 0], inputs[:, 2])))  # (2B, 4, 4)
-    T_1i = T_1i.to(_geometry_dtype(inputs))
-    eye = torch.eye(4, dtype=T_1i.dtype, device=T_1i.device).expand(B, 4, 4)
-    return torch.stack((geo.invert_pose(T_1i[:B]), eye, geo.invert_pose(T_1i[B:])), dim=1)
+    return _triplet_from_middle(T_1i.to(_geometry_dtype(inputs)).reshape(2, B, 4, 4).transpose(0, 1))
+
+
+def _triplet_from_middle(T_1i: Tensor) -> Tensor:
+    """``T_1i (B, 2, 4, 4)`` (middle -> source 0 and -> source 2) -> the triplet's poses
+    ``(B, 3, 4, 4)`` in the middle camera's frame: ``T_wc(i) = T_{1->i}^-1``, ``T_wc(1) = I``."""
+    eye = torch.eye(4, dtype=T_1i.dtype, device=T_1i.device).expand(T_1i.shape[0], 4, 4)
+    return torch.stack((geo.invert_pose(T_1i[:, 0]), eye, geo.invert_pose(T_1i[:, 1])), dim=1)
 
 
 def pairs_for(cfg: MethodConfig) -> tuple[tuple[int, int], ...]:
@@ -357,9 +362,7 @@ def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor, T
     T = torch.cat((torch.cat((T_1i[..., :3, :3], t), dim=-1), T_1i[..., 3:, :]), dim=-2)
     fallback = torch.stack((geo.relative_pose(T_fallback[:, 1], T_fallback[:, 0]),
                             geo.relative_pose(T_fallback[:, 1], T_fallback[:, 2])), dim=1).detach()
-    T = torch.where(usable[..., None, None], T, fallback)
-    eye = torch.eye(4, dtype=T.dtype, device=T.device).expand(B, 4, 4)
-    return torch.stack((geo.invert_pose(T[:, 0]), eye, geo.invert_pose(T[:, 1])), dim=1)
+    return _triplet_from_middle(torch.where(usable[..., None, None], T, fallback))
 
 
 def _downsample(images: Tensor, h: int, w: int) -> Tensor:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from relocdepth.geometry import so3_exp
+from relocdepth.geometry import pose_vector_to_matrix
 from relocdepth.models.encoder import ResNet18Encoder
 from relocdepth.models.pose import pose_decoder
 
@@ -36,12 +36,7 @@ class RelPoseNet(nn.Module):
         return OUTPUT_SCALE * self.head(self.encoder(_stack(x_a, x_b))[-1]).mean(dim=(2, 3))
 
     def forward(self, x_a: Tensor, x_b: Tensor) -> Tensor:
-        p = self.vector(x_a, x_b)
-        T = p.new_zeros(p.shape[0], 4, 4)
-        T[:, :3, :3] = so3_exp(p[:, :3])
-        T[:, :3, 3] = p[:, 3:]
-        T[:, 3, 3] = 1.0
-        return T
+        return pose_vector_to_matrix(self.vector(x_a, x_b))
 
 
 def _stack(x_a: Tensor, x_b: Tensor) -> Tensor:
