@@ -604,6 +604,9 @@ class _StopRequest:
 def _epoch_batches(tr: Trainer, state: RunState, stop: _StopRequest):
     """Yield this rank's batches of the current epoch from ``state.position``; on a stop request
     a dying worker's error ends the epoch quietly."""
+    # The essential-matrix bootstrap's tracking runs in the loader only while the bootstrap is in
+    # use (checked per epoch: the loader is made anew each epoch)
+    tr.data.two_view = tr.cfg.bootstrap == "essential" and any(bootstrap_at(tr.cfg, state.step))
     loader = make_loader(tr.data, tr.sampler, state.epoch, state.position, tr.cfg.batch_size,
                          tr.cfg.workers, pin_memory=tr.device.type == "cuda")
     it = iter(loader)
