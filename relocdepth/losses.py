@@ -94,10 +94,13 @@ def pose_coordinate_loss(q_cells: Tensor, c_cells: Tensor, q: Tensor, c: Tensor)
     return torch.linalg.vector_norm(torch.cat((dr, dt), dim=-1), dim=-1).mean(dim=1)
 
 
-def relative_pose_consistency(T_a: Tensor, T_b: Tensor) -> Tensor:
-    """Distance between relative poses ``(N, 4, 4)``: ``|| [log(R_a^T R_b), t_a - t_b] ||_2`` per pair
-    ``(N,)`` (radians and depth units, like ``L_c``). Used by the training bootstrap to teach the
-    DSC network another source's relative poses; the gradient is finite where they agree."""
+def relative_pose_consistency(T_a: Tensor, T_b: Tensor, t_weight: Tensor | None = None) -> Tensor:
+    """Distance between relative poses ``(N, 4, 4)``: ``|| [log(R_a^T R_b), w (t_a - t_b)] ||_2`` per
+    pair ``(N,)`` (radians and depth units, like ``L_c``), ``w = t_weight (N,)`` (default 1; 0 compares
+    the rotations only). Used by the training bootstrap to teach the DSC network another source's
+    relative poses; the gradient is finite where they agree."""
     dr = quat_log(quat_from_matrix(T_a[:, :3, :3].transpose(-1, -2) @ T_b[:, :3, :3]))
     dt = T_a[:, :3, 3] - T_b[:, :3, 3]
+    if t_weight is not None:
+        dt = dt * t_weight[:, None]
     return torch.linalg.vector_norm(torch.cat((dr, dt), dim=-1), dim=-1)

@@ -247,8 +247,9 @@ def _triplet_loss_fp32(
                   for d in depths]
     T, _, _, l_c_img, q_img, c_img = _absolute_poses(pose_out, depths[0], Kf, cfg.use_dsc, "mean")
     T = T.reshape(B, 3, 4, 4)
+    t_known = None  # (B, 3): frames whose translation from the middle one the bootstrap measured
     if T_boot is None and boot is not None and boot.active and boot.two_view is not None:
-        T_boot = two_view_poses(boot.two_view, depths[0].reshape(B, 3, 1, H, W)[:, 1], T)
+        T_boot, t_known = two_view_poses(boot.two_view, depths[0].reshape(B, 3, 1, H, W)[:, 1], T)
 
     pairs = pairs_for(cfg)
     P = len(pairs)
@@ -272,7 +273,9 @@ def _triplet_loss_fp32(
         T_cons = T if not cfg.use_dsc else _absolute_poses(
             pose_out, depths[0].detach(), Kf, cfg.use_dsc, "mean")[0].reshape(B, 3, 4, 4)
         rel_net, rel_boot = pair_poses(T_cons), pair_poses(T_boot.detach())
-        err = relative_pose_consistency(rel_net, rel_boot)  # (B * P,)
+        # pairs whose bootstrap translation was not measured teach the rotation only
+        t_weight = None if t_known is None else flat(t_known[:, t_idx] & t_known[:, s_idx]).to(T.dtype)
+        err = relative_pose_consistency(rel_net, rel_boot, t_weight)  # (B * P,)
         boot_parts["L_boot"] = err.mean()
         with torch.no_grad():
             t_b, r_b = geo.pose_errors(rel_boot, torch.eye(4, dtype=T.dtype, device=T.device))
@@ -332,14 +335,17 @@ def _triplet_loss_fp32(
     return total, parts, diag
 
 
-def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor, T_fallback: Tensor) -> Tensor:
-    """The triplet's poses ``(B, 3, 4, 4)`` (middle frame = identity) from essential-matrix pairs.
+def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor,
+                   T_fallback: Tensor) -> tuple[Tensor, Tensor]:
+    """The triplet's poses ``(B, 3, 4, 4)`` (middle frame = identity) from essential-matrix pairs,
+    and which of the triplet's frames have a measured translation from the middle one ``(B, 3)``.
 
     Each pair's unit translation is scaled by the median, over its triangulated points, of the
     current depth of the middle frame (``depth_mid (B, 1, H, W)``, gradients flow) at the point over
-    the point's depth in baselines: the translation in the depth network's units. A pair whose two-view
-    pose failed, or has no usable point, takes its relative pose from ``T_fallback (B, 3, 4, 4)``
-    (the DSC's, detached).
+    the point's depth in baselines: the translation in the depth network's units. A rotation-only
+    pair (too little parallax to measure its translation: no points) keeps its rotation with a zero
+    translation. A pair whose two-view pose failed takes its relative pose from ``T_fallback
+    (B, 3, 4, 4)`` (the DSC's, detached). Neither has a measured translation.
     """
     T_1i, points, ok = two_view
     B, _, H, W = depth_mid.shape
@@ -356,13 +362,16 @@ def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor, T
     # NaN where no point, without NaN gradients (0 x 1/NaN would be NaN)
     ratio = torch.where(has, d.reshape(B, 2, n) / torch.where(has, z, torch.ones_like(z)), torch.nan)
     scale = torch.nanmedian(ratio, dim=-1).values  # (B, 2)
-    usable = ok.bool() & torch.isfinite(scale) & (scale > 0)
+    measured = torch.isfinite(scale) & (scale > 0)
+    usable = ok.bool()
     T_1i = T_1i.to(depth_mid.dtype)
-    t = T_1i[..., :3, 3:] * torch.nan_to_num(scale, nan=0.0)[..., None, None]
+    t = T_1i[..., :3, 3:] * torch.where(measured, scale, torch.zeros_like(scale))[..., None, None]
     T = torch.cat((torch.cat((T_1i[..., :3, :3], t), dim=-1), T_1i[..., 3:, :]), dim=-2)
     fallback = torch.stack((geo.relative_pose(T_fallback[:, 1], T_fallback[:, 0]),
                             geo.relative_pose(T_fallback[:, 1], T_fallback[:, 2])), dim=1).detach()
-    return _triplet_from_middle(torch.where(usable[..., None, None], T, fallback))
+    known = usable & measured
+    t_known = torch.stack((known[:, 0], torch.ones_like(known[:, 0]), known[:, 1]), dim=1)
+    return _triplet_from_middle(torch.where(usable[..., None, None], T, fallback)), t_known
 
 
 def _downsample(images: Tensor, h: int, w: int) -> Tensor:

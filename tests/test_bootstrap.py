@@ -80,6 +80,11 @@ def test_relative_pose_consistency_measures_angle_and_translation() -> None:
     Tb[:, :3, 3] += torch.tensor([0.03, 0.0, -0.04], dtype=torch.float64)
     assert torch.allclose(relative_pose_consistency(Ta, Tb), torch.full((5,), math.hypot(0.1, 0.05),
                                                                           dtype=torch.float64), atol=1e-9)
+    # A zero translation weight compares the rotations only (pairs whose translation is unknown).
+    w = torch.tensor([1.0, 0.0, 1.0, 0.0, 0.5], dtype=torch.float64)
+    want = torch.tensor([math.hypot(0.1, 0.05), 0.1, math.hypot(0.1, 0.05), 0.1, math.hypot(0.1, 0.025)],
+                        dtype=torch.float64)
+    assert torch.allclose(relative_pose_consistency(Ta, Tb, w), want, atol=1e-9)
     # Finite gradients where the two agree (the hand-over starts there).
     Tc = Ta.clone().requires_grad_(True)
     relative_pose_consistency(Tc, Ta).sum().backward()
@@ -253,14 +258,22 @@ def test_two_view_poses_scale_translation_by_depth_and_fall_back() -> None:
     points[:, :, :5, 1] = torch.linspace(3, H - 4, 5)
     points[:, :, :5, 2] = 2.0 / length.squeeze(-1).unsqueeze(-1)  # depth 2 = this many baselines
     ok = torch.tensor([[True, True], [True, False]])
+    points[1, 0] = float("nan")  # a rotation-only pair: no triangulated points
+    unit[1, 0, :3, 3] = 0.0
     dsc = _random_poses(6, seed=7).float().reshape(B, 3, 4, 4)
-    got = two_view_poses((unit, points, ok), depth, dsc)
+    got, t_known = two_view_poses((unit, points, ok), depth, dsc)
     assert torch.allclose(got[:, 1], torch.eye(4).expand(B, 4, 4))
     assert torch.allclose(geo.relative_pose(got[0, 1:2], got[0, 0:1]), rel[0, 0:1], atol=1e-5)
     assert torch.allclose(geo.relative_pose(got[0, 1:2], got[0, 2:3]), rel[0, 1:2], atol=1e-5)
+    # The rotation-only pair keeps its rotation, with no translation.
+    rot_only = geo.relative_pose(got[1, 1:2], got[1, 0:1])[0]
+    assert torch.allclose(rot_only[:3, :3], rel[1, 0, :3, :3], atol=1e-5)
+    assert torch.allclose(rot_only[:3, 3], torch.zeros(3), atol=1e-6)
     # The failed pair takes the DSC's relative pose.
     assert torch.allclose(geo.relative_pose(got[1, 1:2], got[1, 2:3]),
                           geo.relative_pose(dsc[1, 1:2], dsc[1, 2:3]), atol=1e-5)
+    # Only measured translations count as known (the middle frame's own is).
+    assert t_known.tolist() == [[True, True, True], [False, True, False]]
 
 
 def test_preview_warps_the_target_from_a_source() -> None:

@@ -126,9 +126,21 @@ def test_bootstrap_pair_pose_and_metric_depth_with_two_cameras() -> None:
     x, y = np.round(pts[:, 0]).astype(int), np.round(pts[:, 1]).astype(int)
     ratio = pts[:, 2] * baseline / depth_a[y, x]
     assert abs(np.median(ratio) - 1.0) < 0.05, np.median(ratio)
-    # A pure rotation has no baseline: no pose is claimed.
-    T_c = T_a.copy()
-    T_c[:3, :3] = T_a[:3, :3] @ cv2.Rodrigues(np.radians([0.0, 3.0, 0.0]))[0]
+    # Too little baseline to see (2 mm: ~0.3 px of parallax): the rotation only, no translation
+    # and no points; a pure rotation either so or not at all (no essential matrix).
+    for shift in (0.002, 0.0):
+        T_c = T_a.copy()
+        T_c[:3, 3] += np.array([shift, 0.0, 0.0])
+        T_c[:3, :3] = T_a[:3, :3] @ cv2.Rodrigues(np.radians([1.0, 3.0, 0.0]))[0]
+        img_c, _ = render(scene, T_c, INTR)
+        T_rot, pts_rot, ok_rot = bootstrap_pair(img_a, img_c, INTR.K(), INTR.K())
+        if shift or ok_rot:
+            assert ok_rot
+            T_ca = relative_pose(torch.from_numpy(T_a)[None], torch.from_numpy(T_c)[None])[0].numpy()
+            assert rotation_angle_deg(T_rot[:3, :3].T @ T_ca[:3, :3]) < 0.5
+            assert np.all(T_rot[:3, 3] == 0) and np.all(np.isnan(pts_rot))
+    # The same rotation with the 8 cm baseline above is measured in full.
+    T_c[:3, 3] = T_b[:3, 3]
     img_c, _ = render(scene, T_c, INTR)
-    _, pts_rot, ok_rot = bootstrap_pair(img_a, img_c, INTR.K(), INTR.K())
-    assert not ok_rot or np.nanmedian(pts_rot[:, 2]) > 20  # if claimed, it sees the scene as very far
+    T_full, _, ok_full = bootstrap_pair(img_a, img_c, INTR.K(), INTR.K())
+    assert ok_full and np.linalg.norm(T_full[:3, 3]) == pytest.approx(1.0, abs=1e-5)
