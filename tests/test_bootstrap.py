@@ -91,6 +91,44 @@ def test_relative_pose_consistency_measures_angle_and_translation() -> None:
     assert torch.isfinite(Tc.grad).all()
 
 
+class _FixedDSC(torch.nn.Module):
+    """A DSC network whose output is given (the DSC of known poses)."""
+
+    def __init__(self, out: torch.Tensor) -> None:
+        super().__init__()
+        self.out = out
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out
+
+
+def test_consistency_weighs_translation_relative_to_scene_depth() -> None:
+    """L_boot counts a translation error as t / D (D = the scene's depth): a DSC whose third camera
+    is off by |d| from the bootstrap's costs |d| / D on the 4 of 6 pairs that involve it, and the
+    same in any depth units (poses and depth scaled together)."""
+    torch.manual_seed(0)
+    nets = Networks(ModelConfig())
+    imgs = torch.rand(1, 3, 3, H, W)
+    K = _K(1)
+    T_dsc = _random_poses(3, seed=8, rot_deg=5.0, trans=0.1).float().reshape(1, 3, 4, 4)
+    T_boot = T_dsc.clone()
+    T_boot[0, 2, :3, 3] += torch.tensor([0.03, -0.04, 0.0])  # |d| = 0.05
+    got = []
+    for k in (1.0, 4.0):  # depth units: the same scene at two scales
+        D = 1.5 * k
+        depth = torch.full((1, 3, 1, H, W), D)
+        T_k, Tb_k = T_dsc.clone(), T_boot.clone()
+        T_k[..., :3, 3] *= k
+        Tb_k[..., :3, 3] *= k
+        cells = geo.pool_depth(depth.reshape(3, 1, H, W))
+        nets.dsc = _FixedDSC(geo.dsc_from_pose(T_k.reshape(3, 4, 4), cells, K.reshape(3, 3, 3)))
+        _, parts, _ = triplet_loss(nets, imgs, imgs, K, MethodConfig(), Bootstrap(True, 1.0, Tb_k),
+                                   depth_override=depth)
+        got.append(float(parts["L_boot"]))
+    assert got[0] == pytest.approx(4 / 6 * 0.05 / 1.5, rel=1e-3)
+    assert got[1] == pytest.approx(got[0], rel=1e-3)
+
+
 def test_warps_switch_between_bootstrap_and_dsc_poses() -> None:
     """A deliberately wrong bootstrap source changes L_p only while it drives the warps."""
     torch.manual_seed(0)
