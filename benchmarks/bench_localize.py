@@ -62,7 +62,7 @@ def make_checkpoint(run: Path, w: int, h: int) -> Path:
         "dataset": {"name": "benchmark", "root": str(run)},
         "input_size": [w, h], "intrinsics": cam.to_dict(), "intrinsics_policy": "resize",
         "model": asdict(model_cfg), "method": asdict(MethodConfig()),
-        "train": TrainConfig(size=(w, h), pretrained=None).to_dict(), "world_size": 1, "alignment": None,
+        "train": TrainConfig.from_dict({"size": (w, h), "pretrained": None}).to_dict(), "world_size": 1, "alignment": None,
     }
     return ckpt_io.save_checkpoint(run, {"meta": meta, "model": nets.state_dict()})
 

@@ -94,7 +94,8 @@ def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
 
     with tempfile.TemporaryDirectory() as tmp:
         # 640x480 x 6 triplets needs > 21 GB on CPU unless the warps are recomputed in backward
-        cfg = TrainConfig(size=(w, h), pretrained=None, workers=0, progress=False, recompute_warps=w * h >= 640 * 480)
+        cfg = TrainConfig.from_dict({"size": (w, h), "pretrained": None, "workers": 0,
+                                     "progress": False, "recompute_warps": w * h >= 640 * 480})
         tr, state = setup(shards, Path(tmp) / "run", cfg)
         trips = list(tr.sampler.iter_epoch(0))[:6]
         raw = collate([tr.data[t] for t in trips])
@@ -129,8 +130,11 @@ def child_rss(shards: str) -> None:
     from relocdepth.train import TrainConfig, train
 
     with tempfile.TemporaryDirectory() as tmp:
-        train(shards, Path(tmp) / "run", TrainConfig(size=(640, 480), pretrained=None, workers=0, recompute_warps=True,
-                                                     progress=False, max_steps=2, checkpoint_every=100))
+        train(shards, Path(tmp) / "run", TrainConfig.from_dict({"size": (640, 480),
+                                                                "pretrained": None, "workers": 0,
+                                                                "recompute_warps": True,
+                                                                "progress": False, "max_steps": 2,
+                                                                "checkpoint_every": 100}))
     print(json.dumps({"peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
 

@@ -44,7 +44,7 @@ def _loss_resolution(text: str) -> str:
     return text
 
 
-# Options that are not TrainConfig fields, and those whose field has another name or type.
+# Options that are not training options, and those whose option has another name or type.
 _NOT_FIELDS = ("ctx", "shards", "out", "recipe", "config")
 _CONVERT = {
     "size": ("size", parse_size),
@@ -59,7 +59,8 @@ _CONVERT = {
 
 
 def _given_fields(ctx: typer.Context, values: dict[str, Any]) -> dict[str, Any]:
-    """TrainConfig fields of the options given on the command line (not left at their default)."""
+    """Training options (by name, see TrainConfig.values_of) given on the command line (not left at
+    their default)."""
     out = {}
     for name, value in values.items():
         source = ctx.get_parameter_source(name)  # a ParameterSource (click's, or typer's vendored one)
@@ -126,11 +127,11 @@ def train(
     from relocdepth.train import TrainConfig
     from relocdepth.train import train as run_training
 
-    fields = recipe_fields(recipe)
+    values = TrainConfig.values_of(recipe_fields(recipe))
     if config is not None:
-        fields.update(read_config_file(config))
-    fields.update(given)
-    cfg = TrainConfig(**fields)
+        values.update(read_config_file(config))
+    values.update(TrainConfig.values_of(given))
+    cfg = TrainConfig.from_values(values)
     summary = run_training(shards, out, cfg)
     if summary["rank"] == 0:
         typer.echo(

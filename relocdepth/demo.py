@@ -64,7 +64,7 @@ def _train(shards: Path, run: Path, cfg: DemoConfig) -> dict:
     from relocdepth.recipes import recipe
     from relocdepth.train import TrainConfig, train
 
-    tcfg = TrainConfig(**{
+    tcfg = TrainConfig.from_dict({
         **recipe(cfg.recipe), "size": cfg.size, "batch_size": cfg.batch_size, "pretrained": cfg.pretrained,
         "seed": cfg.seed, "workers": cfg.workers, "max_minutes": cfg.minutes, "log_every": 10,
         "checkpoint_every": 200, "progress": True,

@@ -1,14 +1,14 @@
 """Named training recipes, defined once: `reloc train --recipe NAME`, the demo and the quality rows.
 
-A recipe is a set of :class:`~relocdepth.train.TrainConfig` fields on top of the defaults (which
-are the paper's). A config file (``--config``: YAML or JSON of TrainConfig fields, or a run's own
-``config.json``) goes on top of the recipe, and options given on the command line on top of both:
-``defaults < recipe < config file < command line``.
+A recipe is a set of training options by name (the command line's, see
+:meth:`~relocdepth.train.TrainConfig.values_of`) on top of the defaults (which are the paper's).
+A config file (``--config``: YAML or JSON of options, flat or in TrainConfig's sections, or a run's
+own ``config.json``) goes on top of the recipe, and options given on the command line on top of
+both: ``defaults < recipe < config file < command line``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,7 @@ _BOOTSTRAP: dict[str, Any] = {"bootstrap": "essential", "bootstrap_steps": 2000,
                               "window": 10}
 
 RECIPES: dict[str, dict[str, Any]] = {
-    # The paper's recipe (Sec. IV-B): TrainConfig's defaults, 640x480, +-20 frames, lr 1e-4.
+    # The paper's recipe (Sec. IV-B): the defaults, 640x480, +-20 frames, lr 1e-4.
     "paper": {},
     # The paper's recipe with the relative-pose bootstrap.
     "paper-bootstrap": {**_BOOTSTRAP, "window": 20, "bootstrap_fade_steps": 1000},
@@ -45,15 +45,17 @@ RECIPES: dict[str, dict[str, Any]] = {
 
 
 def recipe(name: str) -> dict[str, Any]:
-    """The TrainConfig fields of recipe ``name`` (UserError naming the known ones otherwise)."""
+    """The options of recipe ``name`` by name (UserError naming the known ones otherwise)."""
     if name not in RECIPES:
         raise UserError(f"unknown recipe {name!r}; known: {', '.join(RECIPES)}")
     return dict(RECIPES[name])
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
-    """TrainConfig fields from a YAML/JSON file: a plain mapping of fields, or a run's
-    ``config.json`` (its ``train`` entry). Unknown fields are a UserError naming them."""
+    """Training options by place (:meth:`~relocdepth.train.TrainConfig.values`) from a YAML/JSON
+    file: a mapping of options (flat names, or TrainConfig's sections), or a run's
+    ``config.json`` (its ``train`` entry, flat as runs wrote it before the sections, or nested).
+    Unknown options are a UserError naming them."""
     from relocdepth.train import TrainConfig
 
     path = Path(path)
@@ -72,14 +74,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         data = data["train"]  # a run's config.json
     if not isinstance(data, dict):
         raise UserError(f"--config {path} must hold a mapping of training options (or a run's config.json)")
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise UserError(f"--config {path}: unknown option(s) {', '.join(unknown)}")
+    values = TrainConfig.values_of(data, where=f"--config {path}: ")
     # A repeated run starts afresh unless --resume is given on the command line.
-    data = {k: v for k, v in data.items() if k != "resume"}
-    if "size" in data:
-        data["size"] = tuple(data["size"])
-    if "window_schedule" in data:
-        data["window_schedule"] = tuple(tuple(x) for x in data["window_schedule"])
-    return data
+    values.pop("resume", None)
+    return values

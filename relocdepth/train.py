@@ -17,6 +17,7 @@ import random
 import signal
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -37,6 +38,8 @@ from relocdepth.distributed import (
 )
 from relocdepth.errors import TrainingDiverged, UserError
 from relocdepth.fileio import write_json_atomic
+from relocdepth.method import MethodConfig
+from relocdepth.models import ModelConfig
 from relocdepth.sampler import PairParallax, SamplerConfig, TripletSampler
 from relocdepth.trainlog import TrainLog
 
@@ -47,37 +50,34 @@ CONFIG_NAME = "config.json"
 BOOTSTRAP_SOURCES = ("off", "posenet", "essential", "oracle-gt")
 
 
+# The configs a TrainConfig is composed of, by their key in it (and in a run's config.json).
+SECTIONS: dict[str, type] = {"sampler": SamplerConfig, "augment": AugmentConfig, "method": MethodConfig,
+                             "model": ModelConfig}
+
+
+def _paper_model() -> ModelConfig:
+    return ModelConfig(pretrained="imagenet")  # paper III-D: ImageNet-pretrained encoders
+
+
 @dataclass(frozen=True)
 class TrainConfig:
-    size: tuple[int, int] = (640, 480)  # paper IV-B: 640x480 (W, H), multiples of 32
-    epochs: int = 300  # paper IV-B: "within 300 epochs"
+    """What a training run is given: the sampler, augmentation, method and model configs, which
+    hold their own options (with the paper's defaults), plus the trainer's own options below.
+
+    Build it from option names with :meth:`from_dict`: flat names as the command line and the
+    recipes use them (``window``, ``size``, ``use_dsc``, ``batch_size``), the nested layout of
+    :meth:`to_dict` (a run's ``config.json``), or both mixed. ``model.relpose`` is not an option:
+    it follows ``bootstrap``.
+    """
+
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)  # triplets, epochs, seed
+    augment: AugmentConfig = field(default_factory=AugmentConfig)  # input size, scale, colour jitter
+    method: MethodConfig = field(default_factory=MethodConfig)  # losses, LCVS and DSC ablations
+    model: ModelConfig = field(default_factory=_paper_model)  # networks, their initialisation
     batch_size: int = 6  # paper IV-B: batch size 6
     lr: float = 1e-4  # paper IV-B: Adam, learning rate 0.0001
     beta1: float = 0.9  # paper IV-B: beta1 = 0.9
     beta2: float = 0.999  # paper IV-B: beta2 = 0.999
-    window: int = 20  # paper IV-B: nearby frames within 20 steps
-    window_seconds: float | None = None  # the window from timestamps instead of frame indices
-    global_epochs: int = 100  # paper IV-B: global pairs in the latter 100 epochs
-    global_prob: float = 0.5  # paper IV-B: ... for 50 %
-    window_schedule: tuple[tuple[int, int], ...] = ()  # ((epoch, window), ...): window by epoch
-    min_parallax: float | None = None  # sources need this pair parallax (px at `size`); None: paper
-    scale_min: float = 1.0  # paper IV-B: scale 1.0-1.1 and crop back
-    scale_max: float = 1.1
-    brightness: float = 0.2  # paper IV-B: colour jitter +-0.2 / 0.2 / 0.2 / 0.1
-    contrast: float = 0.2
-    saturation: float = 0.2
-    hue: float = 0.1
-    jitter_per_image: bool = False  # DESIGN.md: one jitter draw per triplet (monodepth2)
-    lcvs: bool = True  # paper III-C: loop-closed view synthesis (False: w/o LCVS ablation)
-    use_dsc: bool = True  # paper III-B: DSC network (False: w/o DSC ablation, absolute pose head)
-    pretrained: str | None = "imagenet"  # paper: ImageNet encoder; a path, "imagenet" or None
-    alpha: float = 0.85  # paper III-A / monodepth2: SSIM weight
-    w_s: float = 0.001  # paper IV-B: smoothness weight
-    w_c: float = 0.03  # paper IV-B: pose coordinate weight
-    photometric_pixels: str = "valid"  # L_p over "valid" pixels (DESIGN.md) or "all" (monodepth2)
-    recompute_warps: bool = False  # checkpoint the warps/SSIM: less memory, a little more time
-    loss_resolution: str = "decoder"  # paper III-B: each decoder layer's size; "input": monodepth2
-    decoder_bn: bool = False  # paper IV-B: BN in the depth decoder too (monodepth2: none)
     # Relative-pose bootstrap (not in the paper; README, fidelity): for the first bootstrap_steps the
     # warps use relative poses from "posenet" (a two-frame network trained by the same photometric
     # loss), "essential" (essential matrix of KLT tracks, translation scaled by the current depth) or
@@ -91,7 +91,6 @@ class TrainConfig:
     bootstrap_steps: int = 0
     bootstrap_fade_steps: int = 500
     w_bootstrap: float = 1.0
-    seed: int = 0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
     amp: bool = False  # CUDA/CPU autocast
@@ -107,6 +106,16 @@ class TrainConfig:
     resume: bool = False  # continue the run in run_dir from its latest checkpoint
 
     def __post_init__(self) -> None:
+        for key, cls in SECTIONS.items():
+            if not isinstance(getattr(self, key), cls):
+                raise TypeError(f"TrainConfig.{key} must be a {cls.__name__}")
+        if self.model.relpose != (self.bootstrap == "posenet"):  # the bootstrap's two-frame network
+            object.__setattr__(self, "model", dataclasses.replace(self.model, relpose=self.bootstrap == "posenet"))
+        for name, places in _SHARED_FIELDS.items():
+            values = {key: getattr(getattr(self, key), name) for key in places}
+            if len(set(values.values())) > 1:
+                given = ", ".join(f"{key}.{name} = {v!r}" for key, v in values.items())
+                raise UserError(f"{name} must be the same everywhere ({given}): give it once, as {name}")
         if self.batch_size < 1:
             raise UserError(f"--batch-size must be >= 1, not {self.batch_size}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
@@ -126,29 +135,110 @@ class TrainConfig:
             raise UserError(f"--bootstrap {self.bootstrap} needs --bootstrap-steps >= 1")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
-        self.augment_config()  # validates the size
-        self.sampler_config()
 
-    def sampler_config(self) -> SamplerConfig:
-        return SamplerConfig(self.window, self.window_seconds, self.epochs, self.global_epochs,
-                             self.global_prob, self.seed, self.window_schedule, self.min_parallax)
+    @property
+    def size(self) -> tuple[int, int]:
+        """Network input (W, H): the augmentation's output size."""
+        return self.augment.width, self.augment.height
 
-    def augment_config(self) -> AugmentConfig:
-        return AugmentConfig(self.size[0], self.size[1], self.scale_min, self.scale_max, self.brightness,
-                             self.contrast, self.saturation, self.hue, self.jitter_per_image)
+    @property
+    def epochs(self) -> int:
+        return self.sampler.epochs
+
+    @property
+    def seed(self) -> int:
+        """Seed of the initial weights as well as of the sampler's triplets and augmentation."""
+        return self.sampler.seed
 
     def to_dict(self) -> dict[str, Any]:
+        """The nested layout: one entry per section, then the trainer's own options."""
         return asdict(self)
 
+    def values(self) -> dict[str, Any]:
+        """Every option by its place: ``{"sampler.window": 20, ..., "batch_size": 6, ...}``."""
+        out: dict[str, Any] = {}
+        for name, value in self.to_dict().items():
+            if name in SECTIONS:
+                out.update({f"{name}.{k}": v for k, v in value.items()})
+            else:
+                out[name] = value
+        return out
+
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
-        known = {f.name for f in dataclasses.fields(cls)}
-        d = {k: v for k, v in d.items() if k in known}
-        if "size" in d:
-            d["size"] = tuple(d["size"])
-        if "window_schedule" in d:
-            d["window_schedule"] = tuple(tuple(x) for x in d["window_schedule"])
-        return cls(**d)
+    def values_of(cls, options: Mapping[str, Any], where: str = "") -> dict[str, Any]:
+        """Options given by name -> values by place (see :meth:`values`), to layer with ``update``.
+
+        Names are flat (a field of a section, or ``size`` for ``augment.width`` and ``height``: a
+        flat name sets the field in every section that has one, e.g. ``use_dsc`` in method and
+        model) or a section holding a mapping of its fields. Unknown names are a UserError
+        (``where`` prefixes its message)."""
+        out: dict[str, Any] = {}
+        unknown: list[str] = []
+        own = {f.name for f in dataclasses.fields(cls)} - set(SECTIONS)
+        for name, value in options.items():
+            if name in SECTIONS:
+                if not isinstance(value, Mapping):
+                    raise UserError(f"{where}{name} must be a mapping of its options, not {value!r}")
+                fields = {f.name for f in dataclasses.fields(SECTIONS[name])}
+                unknown += [f"{name}.{k}" for k in value if k not in fields]
+                out.update({f"{name}.{k}": v for k, v in value.items() if k in fields})
+            elif name == "size":
+                try:
+                    out["augment.width"], out["augment.height"] = value
+                except (TypeError, ValueError):
+                    raise UserError(f"{where}size must be [width, height], not {value!r}") from None
+            elif name in own:
+                out[name] = value
+            elif name in _FLAT_FIELDS:
+                out.update({f"{key}.{name}": value for key in _FLAT_FIELDS[name]})
+            else:
+                unknown.append(name)
+        if unknown:
+            raise UserError(f"{where}unknown option(s) {', '.join(sorted(unknown))}")
+        return out
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> TrainConfig:
+        """The config with ``values`` (by place, see :meth:`values`) over the defaults."""
+        sections: dict[str, dict[str, Any]] = {key: {} for key in SECTIONS}
+        own: dict[str, Any] = {}
+        for place, value in values.items():
+            key, _, name = place.rpartition(".")
+            if key and key not in SECTIONS:
+                raise UserError(f"unknown option {place}")
+            (sections[key] if key else own)[name] = value
+        if "window_schedule" in sections["sampler"]:
+            sections["sampler"]["window_schedule"] = tuple(
+                tuple(x) for x in sections["sampler"]["window_schedule"])
+        default = cls()
+        built = {}
+        for key, given in sections.items():
+            try:
+                built[key] = dataclasses.replace(getattr(default, key), **given)
+            except ValueError as e:  # the method's checks of its option values
+                raise UserError(str(e)) from None
+        return cls(**built, **own)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> TrainConfig:
+        """The config of options given by name (see :meth:`values_of`) over the defaults: a run's
+        ``config.json`` ``train`` entry (nested, or flat as runs wrote before the sections), a
+        checkpoint's, or options in code: ``TrainConfig.from_dict({"size": (128, 96)})``."""
+        return cls.from_values(cls.values_of(d))
+
+
+def _sections_by_field() -> dict[str, tuple[str, ...]]:
+    out: dict[str, tuple[str, ...]] = {}
+    for key, cls in SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            out[f.name] = (*out.get(f.name, ()), key)
+    return out
+
+
+# The sections each flat field name goes to; those of more than one section are one option (set
+# once, by its flat name: use_dsc, min_depth, max_depth in method and model).
+_FLAT_FIELDS = _sections_by_field()
+_SHARED_FIELDS = {name: keys for name, keys in _FLAT_FIELDS.items() if len(keys) > 1}
 
 
 def bootstrap_at(cfg: TrainConfig, step: int) -> tuple[bool, float]:
@@ -164,8 +254,9 @@ def bootstrap_at(cfg: TrainConfig, step: int) -> tuple[bool, float]:
 
 
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
-RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "recompute_warps", "max_steps",
-                      "max_minutes", "log_every", "checkpoint_every", "keep_last", "max_nonfinite", "progress", "resume", "epochs")
+RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "method.recompute_warps",
+                      "max_steps", "max_minutes", "log_every", "checkpoint_every", "keep_last", "max_nonfinite",
+                      "progress", "resume", "sampler.epochs")
 
 
 @dataclass
@@ -206,22 +297,6 @@ class Trainer:
 
 
 # -- setup -----------------------------------------------------------------------------------------
-def _method_and_model_configs(cfg: TrainConfig) -> tuple[Any, Any]:
-    from relocdepth.method import MethodConfig
-    from relocdepth.models import ModelConfig
-
-    def build(cls: Any, values: dict[str, Any]) -> Any:
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in values.items() if k in names})
-
-    common = {"lcvs": cfg.lcvs, "use_dsc": cfg.use_dsc, "alpha": cfg.alpha, "w_s": cfg.w_s, "w_c": cfg.w_c,
-              "photometric_pixels": cfg.photometric_pixels, "recompute_warps": cfg.recompute_warps,
-              "loss_resolution": cfg.loss_resolution}
-    return build(MethodConfig, common), build(ModelConfig, {"pretrained": cfg.pretrained, "use_dsc": cfg.use_dsc,
-                                                            "decoder_bn": cfg.decoder_bn,
-                                                            "relpose": cfg.bootstrap == "posenet"})
-
-
 class _LossModule:
     """Created lazily as an nn.Module subclass so that DDP wraps the loss computation (a DDP
     wrapper only synchronises gradients for work done through its own forward)."""
@@ -256,12 +331,13 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path) -> tuple[TrainConfig, dict 
     if latest is None:
         raise UserError(f"nothing to resume: {run_dir} holds no checkpoint; drop --resume to start a run")
     ck = ckpt_io.load_checkpoint(latest)
-    saved = TrainConfig.from_dict(ck["meta"]["train"])
-    overrides = {k: getattr(cfg, k) for k in RUN_CONTROL_FIELDS}
-    ignored = [k for k in asdict(cfg) if k not in overrides and getattr(cfg, k) != getattr(saved, k)]
+    saved = TrainConfig.from_dict(ck["meta"]["train"])  # flat in checkpoints written before sections
+    given, kept = cfg.values(), saved.values()
+    overrides = {k: given[k] for k in RUN_CONTROL_FIELDS}
+    ignored = [k for k in given if k not in overrides and k != "model.relpose" and given[k] != kept[k]]
     if ignored:
         log.warning("resuming %s: keeping the run's %s (given values ignored)", run_dir, ", ".join(ignored))
-    return dataclasses.replace(saved, **overrides), ck, latest
+    return TrainConfig.from_values({**kept, **overrides}), ck, latest
 
 
 def _research_ground_truth(shards: str | Path, frames: ImageFrames, kind: str, option: str) -> list[Any]:
@@ -329,14 +405,14 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
         log.warning("RESEARCH ORACLE: the warps of the first %d steps use ground-truth poses", cfg.bootstrap_steps)
     if ck is not None:
         ckpt_io.check_same_dataset(ck["meta"], frames.manifest_hash, ck_path)  # type: ignore[arg-type]
-    parallax = _pair_parallax(frames, cfg) if cfg.min_parallax is not None else None
+    parallax = _pair_parallax(frames, cfg) if cfg.sampler.min_parallax is not None else None
     dist, device = init_distributed(cfg.device)
     torch.manual_seed(cfg.seed)  # same initial weights on every rank
     random.seed(cfg.seed)
     np.random.seed(cfg.seed % 2**32)
-    sampler = TripletSampler(frames.keys(), cfg.sampler_config(), dist.rank, dist.world_size, parallax)
-    data = TripletData(frames, cfg.augment_config(), two_view=cfg.bootstrap == "essential")
-    method_cfg, model_cfg = _method_and_model_configs(cfg)
+    sampler = TripletSampler(frames.keys(), cfg.sampler, dist.rank, dist.world_size, parallax)
+    data = TripletData(frames, cfg.augment, two_view=cfg.bootstrap == "essential")
+    method_cfg, model_cfg = cfg.method, cfg.model
     from relocdepth.models import build_networks
 
     nets = build_networks(model_cfg).to(device)
@@ -360,7 +436,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
         run_dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(run_dir / CONFIG_NAME, {
             "tool_version": relocdepth.__version__, "shards": str(shards), "world_size": dist.world_size,
-            "train": cfg.to_dict(), "method": asdict(method_cfg), "model": asdict(model_cfg),
+            "train": cfg.to_dict(),
         }, sort_keys=True)
     total = _total_steps(sampler, cfg)
     tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs,
@@ -684,7 +760,7 @@ def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfi
     tr, state = setup(shards, run_dir, cfg)
     start_step = state.step
     tr.log.event("resume" if tr.cfg.resume else "start", state.step, world_size=tr.dist.world_size,
-                 device=str(tr.device), pretrained=tr.cfg.pretrained)
+                 device=str(tr.device), pretrained=tr.cfg.model.pretrained)
     t0 = time.perf_counter()
     try:
         with _StopRequest() as stop:

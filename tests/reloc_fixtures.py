@@ -19,8 +19,9 @@ def trained_run(shards: Path, factory: pytest.TempPathFactory) -> Path:
         from relocdepth.train import TrainConfig, train
 
         run = factory.mktemp("run") / "run"
-        cfg = TrainConfig(size=(128, 96), batch_size=1, max_steps=1, pretrained=None, workers=0,
-                          progress=False, window=3)
+        cfg = TrainConfig.from_dict({"size": (128, 96), "batch_size": 1, "max_steps": 1,
+                                     "pretrained": None, "workers": 0, "progress": False,
+                                     "window": 3})
         train(shards, run, cfg)
         _CACHE[key] = run
     return _CACHE[key]

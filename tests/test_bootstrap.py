@@ -151,7 +151,8 @@ def test_warps_switch_between_bootstrap_and_dsc_poses() -> None:
 def test_bootstrap_schedule() -> None:
     from relocdepth.train import TrainConfig, bootstrap_at
 
-    cfg = TrainConfig(bootstrap="posenet", bootstrap_steps=10, bootstrap_fade_steps=4, w_bootstrap=2.0)
+    cfg = TrainConfig.from_dict({"bootstrap": "posenet", "bootstrap_steps": 10,
+                                 "bootstrap_fade_steps": 4, "w_bootstrap": 2.0})
     got = [bootstrap_at(cfg, s) for s in (0, 9, 10, 11, 13, 14, 100)]
     assert got == [(True, 2.0), (True, 2.0), (False, 2.0), (False, 1.5), (False, 0.5), (False, 0.0), (False, 0.0)]
     assert bootstrap_at(TrainConfig(), 0) == (False, 0.0)
@@ -174,9 +175,11 @@ def test_trainer_hands_over_from_a_wrong_bootstrap(synth_shards: Path, tmp_path:
         return _random_poses(len(T), seed=5, rot_deg=25.0, trans=0.6).numpy().astype(np.float32)
 
     monkeypatch.setattr(train_mod, "research_gt_poses", wrong_poses)
-    cfg = train_mod.TrainConfig(size=(128, 96), batch_size=2, pretrained=None, workers=0, progress=False,
-                                log_every=1, max_steps=4, bootstrap="oracle-gt", bootstrap_steps=2,
-                                bootstrap_fade_steps=1, photometric_pixels="all")
+    cfg = train_mod.TrainConfig.from_dict({"size": (128, 96), "batch_size": 2, "pretrained": None,
+                                           "workers": 0, "progress": False, "log_every": 1,
+                                           "max_steps": 4, "bootstrap": "oracle-gt",
+                                           "bootstrap_steps": 2, "bootstrap_fade_steps": 1,
+                                           "photometric_pixels": "all"})
     train_mod.train(synth_shards, tmp_path / "run", cfg)
     steps = _log_steps(tmp_path / "run")
     assert [d["step"] for d in steps] == [1, 2, 3, 4]
@@ -194,8 +197,10 @@ def test_posenet_bootstrap_trains_and_checkpoint_localizes(synth_shards: Path, t
     from relocdepth.checkpoint import load_for_inference
     from relocdepth.train import TrainConfig, train
 
-    cfg = TrainConfig(size=(128, 96), batch_size=2, pretrained=None, workers=0, progress=False, log_every=1,
-                      max_steps=3, bootstrap="posenet", bootstrap_steps=2, bootstrap_fade_steps=1)
+    cfg = TrainConfig.from_dict({"size": (128, 96), "batch_size": 2, "pretrained": None,
+                                 "workers": 0, "progress": False, "log_every": 1, "max_steps": 3,
+                                 "bootstrap": "posenet", "bootstrap_steps": 2,
+                                 "bootstrap_fade_steps": 1})
     summary = train(synth_shards, tmp_path / "run", cfg)
     assert summary["steps"] == 3
     steps = _log_steps(tmp_path / "run")
@@ -207,8 +212,9 @@ def test_posenet_bootstrap_trains_and_checkpoint_localizes(synth_shards: Path, t
 def test_max_minutes_stops_on_wall_clock(synth_shards: Path, tmp_path: Path) -> None:
     from relocdepth.train import TrainConfig, train
 
-    cfg = TrainConfig(size=(128, 96), batch_size=1, pretrained=None, workers=0, progress=False,
-                      max_minutes=1e-4, checkpoint_every=1000)
+    cfg = TrainConfig.from_dict({"size": (128, 96), "batch_size": 1, "pretrained": None,
+                                 "workers": 0, "progress": False, "max_minutes": 1e-4,
+                                 "checkpoint_every": 1000})
     summary = train(synth_shards, tmp_path / "run", cfg)
     assert summary["stop"] == "max_minutes" and summary["steps"] == 1
     assert summary["checkpoint"] is not None  # the final checkpoint
@@ -242,34 +248,38 @@ def test_recipes_config_files_and_explicit_options_layer(synth_shards: Path, tmp
     from relocdepth.cli.main import app
 
     from relocdepth.recipes import RECIPES
+    from relocdepth.train import TrainConfig
 
     runner = CliRunner()
     common = ["--pretrained", "none", "--workers", "0", "--no-progress", "--max-steps", "1", "--batch-size", "1"]
 
     def trained(run: str) -> dict:
-        return json.loads((tmp_path / run / "config.json").read_text())["train"]
+        train = json.loads((tmp_path / run / "config.json").read_text())["train"]
+        return TrainConfig.from_dict(train).values()
 
     r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "a"), "--recipe", "cpu-bootstrap",
                             "--window", "5", *common])
     assert r.exit_code == 0, r.output
     a = trained("a")
-    assert a["lr"] == 3e-4 and a["photometric_pixels"] == "all" and a["bootstrap"] == RECIPES["cpu-bootstrap"]["bootstrap"]
-    assert a["size"] == [128, 96] and a["bootstrap_steps"] == RECIPES["cpu-bootstrap"]["bootstrap_steps"]
-    assert a["window"] == 5  # given here: overrides the recipe's 3
+    assert a["lr"] == 3e-4 and a["method.photometric_pixels"] == "all"
+    assert a["bootstrap"] == RECIPES["cpu-bootstrap"]["bootstrap"]
+    assert (a["augment.width"], a["augment.height"]) == (128, 96)
+    assert a["bootstrap_steps"] == RECIPES["cpu-bootstrap"]["bootstrap_steps"]
+    assert a["sampler.window"] == 5  # given here: overrides the recipe's 3
     # The run's own config.json repeats it (same training fields), with options still on top.
     r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "b"), "--config",
                             str(tmp_path / "a" / "config.json"), "--seed", "3"])
     assert r.exit_code == 0, r.output
     b = trained("b")
-    assert {k: v for k, v in b.items() if k != "seed"} == {k: v for k, v in a.items() if k != "seed"}
-    assert b["seed"] == 3
+    assert {k: v for k, v in b.items() if k != "sampler.seed"} == {k: v for k, v in a.items() if k != "sampler.seed"}
+    assert b["sampler.seed"] == 3
     # A YAML file over a recipe.
     (tmp_path / "c.yaml").write_text("lr: 0.002\nwindow: 7\n")
     r = runner.invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "c"), "--recipe", "cpu",
                             "--config", str(tmp_path / "c.yaml"), *common])
     assert r.exit_code == 0, r.output
     c = trained("c")
-    assert (c["lr"], c["window"], c["photometric_pixels"], c["bootstrap"]) == (0.002, 7, "all", "off")
+    assert (c["lr"], c["sampler.window"], c["method.photometric_pixels"], c["bootstrap"]) == (0.002, 7, "all", "off")
     # Bad input: one line, exit 2, nothing written.
     (tmp_path / "bad.yaml").write_text("learning_rate: 1\n")
     for bad in (["--recipe", "fast"], ["--config", str(tmp_path / "bad.yaml")],

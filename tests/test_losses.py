@@ -366,12 +366,12 @@ def test_train_options_reach_the_method_and_networks(tmp_path: Path) -> None:
     from relocdepth.cli.main import app
     from typer.testing import CliRunner
 
-    from relocdepth.train import TrainConfig, _method_and_model_configs
+    from relocdepth.train import TrainConfig
 
-    method_cfg, model_cfg = _method_and_model_configs(TrainConfig(loss_resolution="input", decoder_bn=True))
-    assert method_cfg.loss_resolution == "input" and model_cfg.decoder_bn
-    method_cfg, model_cfg = _method_and_model_configs(TrainConfig())  # the paper's: each layer's size
-    assert method_cfg.loss_resolution == "decoder" and not model_cfg.decoder_bn
+    cfg = TrainConfig.from_dict({"loss_resolution": "input", "decoder_bn": True})
+    assert cfg.method.loss_resolution == "input" and cfg.model.decoder_bn
+    cfg = TrainConfig()  # the paper's: each layer's size
+    assert cfg.method.loss_resolution == "decoder" and not cfg.model.decoder_bn
     run = tmp_path / "run"
     res = CliRunner().invoke(app, ["train", str(tmp_path), "-o", str(run), "--loss-resolution", "output"])
     assert res.exit_code == 2 and "--loss-resolution must be one of input, decoder" in res.output

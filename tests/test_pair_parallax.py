@@ -167,8 +167,8 @@ def test_min_parallax_without_data_is_one_error_line(synth_scene: Path, tmp_path
 def test_trainer_samples_with_parallax_at_the_training_size(parallax_shards: Path, tmp_path: Path) -> None:
     from relocdepth.train import TrainConfig, setup
 
-    cfg = TrainConfig(size=(256, 192), batch_size=1, pretrained=None, workers=0, progress=False,
-                      min_parallax=1.0)
+    cfg = TrainConfig.from_dict({"size": (256, 192), "batch_size": 1, "pretrained": None,
+                                 "workers": 0, "progress": False, "min_parallax": 1.0})
     tr, _ = setup(parallax_shards, tmp_path / "run", cfg)
     tr.log.close()
     ds = open_dataset(parallax_shards)

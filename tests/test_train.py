@@ -28,7 +28,7 @@ CLI_FAST = ["--size", "128x96", "--batch-size", "2", "--pretrained", "none", "--
 def _cfg(**kw):
     from relocdepth.train import TrainConfig
 
-    return TrainConfig(**{**FAST, **kw})
+    return TrainConfig.from_dict({**FAST, **kw})
 
 
 def _weights(run: Path) -> dict[str, torch.Tensor]:
@@ -368,8 +368,8 @@ def sample(tr, state, batch):
 
 
 T.setup, T.sample = setup, sample
-cfg = T.TrainConfig(size=(64, 64), batch_size=1, pretrained=None, workers=0, progress=False,
-                    max_steps=2, log_every=1)
+cfg = T.TrainConfig.from_dict(dict(size=(64, 64), batch_size=1, pretrained=None, workers=0, progress=False,
+                                   max_steps=2, log_every=1))
 summary = T.train(shards, run, cfg)
 tr = captured["tr"]
 torch.save({"init": captured["init"], "final": _state(tr.nets), "starts": starts, "triplets": seen,

@@ -86,12 +86,12 @@ def test_jitter_per_triplet_is_one_draw_per_image_is_three(synth_shards: Path) -
 def test_jitter_per_image_option_reaches_the_run(synth_shards: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
     _cli("train", str(synth_shards), "-o", str(run), *FAST, "--max-steps", "0", "--jitter-per-image")
-    assert json.loads((run / "config.json").read_text())["train"]["jitter_per_image"] is True
+    assert json.loads((run / "config.json").read_text())["train"]["augment"]["jitter_per_image"] is True
     meta = ckpt_io.load_checkpoint(ckpt_io.latest_checkpoint(run))["meta"]
-    assert meta["train"]["jitter_per_image"] is True
+    assert meta["train"]["augment"]["jitter_per_image"] is True
     from relocdepth.train import TrainConfig
 
-    assert TrainConfig.from_dict(meta["train"]).augment_config().jitter_per_image is True
+    assert TrainConfig.from_dict(meta["train"]).augment.jitter_per_image is True
 
 
 # -- --amp on CPU -------------------------------------------------------------------------------------
@@ -99,8 +99,9 @@ def test_amp_on_cpu_trains_a_step_in_bf16(synth_shards: Path, tmp_path: Path) ->
     from relocdepth.data import collate
     from relocdepth.train import TrainConfig, forward_losses, optimizer_step, sample, setup
 
-    cfg = TrainConfig(size=(64, 64), batch_size=1, pretrained=None, workers=0, progress=False, device="cpu",
-                      amp=True, amp_dtype="bf16")
+    cfg = TrainConfig.from_dict({"size": (64, 64), "batch_size": 1, "pretrained": None,
+                                 "workers": 0, "progress": False, "device": "cpu", "amp": True,
+                                 "amp_dtype": "bf16"})
     tr, state = setup(synth_shards, tmp_path / "run", cfg)
     try:
         convs = [m for m in tr.nets.modules() if isinstance(m, torch.nn.Conv2d)]

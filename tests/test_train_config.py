@@ -1,0 +1,142 @@
+"""The training config: composed of the sampler, augmentation, method and model configs; flat
+option names (the command line's, recipes, runs written before the sections) map onto it; nested
+configs round-trip; layering defaults < recipe < config file < options given."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from relocdepth import checkpoint as ckpt_io
+from relocdepth.errors import UserError
+from relocdepth.recipes import read_config_file, recipe
+from relocdepth.train import TrainConfig
+
+torch.set_num_threads(1)
+
+# A run's config.json `train` entry as runs wrote it before the sections (one flat mapping of
+# every option), with values away from the defaults so that each must arrive in its place.
+FLAT_RUN = {
+    "size": [128, 96], "epochs": 40, "batch_size": 2, "lr": 0.0003, "beta1": 0.8, "beta2": 0.99,
+    "window": 3, "window_seconds": None, "global_epochs": 10, "global_prob": 0.25,
+    "window_schedule": [[0, 2], [5, 3]], "min_parallax": 1.5, "scale_min": 1.0, "scale_max": 1.05,
+    "brightness": 0.1, "contrast": 0.15, "saturation": 0.05, "hue": 0.02, "jitter_per_image": True,
+    "lcvs": False, "use_dsc": False, "pretrained": None, "alpha": 0.8, "w_s": 0.002, "w_c": 0.05,
+    "photometric_pixels": "all", "recompute_warps": True, "loss_resolution": "input",
+    "decoder_bn": True, "bootstrap": "essential", "oracle_gt_depth": False, "bootstrap_steps": 7,
+    "bootstrap_fade_steps": 3, "w_bootstrap": 0.5, "seed": 11, "workers": 0, "device": "cpu",
+    "amp": False, "amp_dtype": "bf16", "channels_last": False, "max_steps": 9, "max_minutes": 2.5,
+    "log_every": 4, "checkpoint_every": 6, "keep_last": 2, "max_nonfinite": 5, "progress": False,
+    "resume": False,
+}
+# Where each flat option lives now.
+FLAT_PLACES = {
+    "epochs": "sampler.epochs", "window": "sampler.window", "window_seconds": "sampler.window_seconds",
+    "global_epochs": "sampler.global_epochs", "global_prob": "sampler.global_prob",
+    "window_schedule": "sampler.window_schedule", "min_parallax": "sampler.min_parallax",
+    "seed": "sampler.seed", "scale_min": "augment.scale_min", "scale_max": "augment.scale_max",
+    "brightness": "augment.brightness", "contrast": "augment.contrast",
+    "saturation": "augment.saturation", "hue": "augment.hue",
+    "jitter_per_image": "augment.jitter_per_image", "lcvs": "method.lcvs", "alpha": "method.alpha",
+    "w_s": "method.w_s", "w_c": "method.w_c", "photometric_pixels": "method.photometric_pixels",
+    "recompute_warps": "method.recompute_warps", "loss_resolution": "method.loss_resolution",
+    "pretrained": "model.pretrained", "decoder_bn": "model.decoder_bn",
+}
+
+
+def _as_json(value):
+    return json.loads(json.dumps(value))
+
+
+def test_flat_config_json_loads_with_the_same_values(tmp_path: Path) -> None:
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"tool_version": "0.1.0", "shards": "x", "world_size": 1, "train": FLAT_RUN}))
+    cfg = TrainConfig.from_values(read_config_file(path))
+    values = cfg.values()
+    for name, value in FLAT_RUN.items():
+        if name == "size":
+            assert (values["augment.width"], values["augment.height"]) == tuple(value) == cfg.size
+        elif name == "use_dsc":  # one option of the method and the networks
+            assert values["method.use_dsc"] is values["model.use_dsc"] is False
+        elif name == "resume":  # a repeated run starts afresh
+            assert values["resume"] is False
+        else:
+            assert _as_json(values[FLAT_PLACES.get(name, name)]) == value, name
+    assert cfg.sampler.window_schedule == ((0, 2), (5, 3)) and cfg.epochs == 40 and cfg.seed == 11
+    # The sections get exactly these values: what the sampler, loader, losses and networks see.
+    assert cfg.sampler.window_at(6) == 3 and cfg.augment.jitter_per_image and not cfg.method.lcvs
+    assert cfg.model.pretrained is None and not cfg.model.use_dsc and not cfg.model.relpose
+    assert TrainConfig.from_dict(FLAT_RUN) == cfg
+
+
+def test_nested_config_round_trips_through_json(tmp_path: Path) -> None:
+    cfg = TrainConfig.from_dict({**FLAT_RUN, "bootstrap": "posenet"})
+    assert cfg.model.relpose  # the bootstrap's two-frame network
+    nested = _as_json(cfg.to_dict())
+    assert set(nested) >= {"sampler", "augment", "method", "model"} and "window" not in nested
+    assert nested["sampler"]["window"] == 3 and nested["augment"]["width"] == 128
+    assert TrainConfig.from_dict(nested) == cfg
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"train": nested}))
+    assert TrainConfig.from_values(read_config_file(path)) == cfg
+    assert TrainConfig.from_dict({}) == TrainConfig()
+
+
+def test_recipe_config_file_and_flags_layer_across_flat_and_nested(tmp_path: Path) -> None:
+    # defaults < recipe (flat) < config file (nested) < options given (flat)
+    (tmp_path / "c.yaml").write_text("sampler:\n  window: 7\n  seed: 4\nmethod:\n  w_s: 0.01\n"
+                                     "augment:\n  width: 160\n  height: 128\n")
+    values = TrainConfig.values_of(recipe("cpu"))
+    values.update(read_config_file(tmp_path / "c.yaml"))
+    values.update(TrainConfig.values_of({"window": 9, "use_dsc": False}))
+    cfg = TrainConfig.from_values(values)
+    assert cfg.sampler.window == 9  # the flag's
+    assert cfg.sampler.seed == 4 and cfg.method.w_s == 0.01 and cfg.size == (160, 128)  # the file's
+    assert cfg.lr == 3e-4 and cfg.method.photometric_pixels == "all"  # the recipe's
+    assert cfg.sampler.global_prob == 0.5 and cfg.batch_size == 6  # the defaults
+    assert not cfg.method.use_dsc and not cfg.model.use_dsc
+
+
+def test_an_option_of_two_sections_is_one_option_and_unknown_ones_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="use_dsc must be the same"):
+        TrainConfig.from_dict({"method": {"use_dsc": False}})
+    with pytest.raises(UserError, match="unknown option.*method.learning_rate.*windw"):
+        TrainConfig.from_dict({"windw": 3, "method": {"learning_rate": 1}})
+    with pytest.raises(UserError, match="size must be"):
+        TrainConfig.from_dict({"size": 128})
+    with pytest.raises(UserError, match="loss_resolution"):  # the method's own check, as a user error
+        TrainConfig.from_dict({"method": {"loss_resolution": "output"}})
+    (tmp_path / "bad.json").write_text(json.dumps({"train": {"sampler": {"windw": 3}}}))
+    with pytest.raises(UserError, match=r"--config .*bad.json: unknown option\(s\) sampler.windw"):
+        read_config_file(tmp_path / "bad.json")
+
+
+def test_checkpoint_with_a_flat_config_resumes_with_its_values(synth_shards: Path, tmp_path: Path) -> None:
+    """A run whose checkpoint stores the flat layout (written before the sections) resumes with
+    its own values, and its networks load for inference."""
+    from relocdepth.cli.main import app
+
+    run = tmp_path / "run"
+    common = ["--size", "64x64", "--batch-size", "1", "--pretrained", "none", "--workers", "0", "--no-progress"]
+    r = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(run), *common, "--max-steps", "1",
+                                 "--window", "4", "--seed", "5"])
+    assert r.exit_code == 0, r.output
+    path = ckpt_io.latest_checkpoint(run)
+    ck = torch.load(path, weights_only=False)
+    flat = {**FLAT_RUN, "size": [64, 64], "batch_size": 1, "window": 4, "seed": 5, "bootstrap": "off",
+            "bootstrap_steps": 0, "min_parallax": None, "use_dsc": True, "decoder_bn": False,
+            "max_steps": 1}
+    ck["meta"]["train"] = flat
+    torch.save(ck, path)
+    r = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(run), *common, "--max-steps", "2",
+                                 "--resume"])
+    assert r.exit_code == 0, r.output
+    saved = TrainConfig.from_dict(ckpt_io.load_checkpoint(ckpt_io.latest_checkpoint(run))["meta"]["train"])
+    assert saved.max_steps == 2  # given now (how the run runs)
+    assert (saved.sampler.window, saved.seed, saved.lr, saved.method.w_c) == (4, 5, 0.0003, 0.05)  # the run's
+    nets, meta = ckpt_io.load_for_inference(run)
+    assert meta["step"] == 2 and hasattr(nets, "dsc")
