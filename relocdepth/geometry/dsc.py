@@ -22,32 +22,10 @@ import torch.nn.functional as F
 from kornia.geometry.conversions import axis_angle_to_quaternion
 from torch import Tensor
 
-from relocdepth.geometry.rotations import (
-    minimal_rotation_quat,
-    quat_angle,
-    quat_conj,
-    quat_from_matrix,
-    quat_log,
-    quat_mul,
-    quat_to_matrix,
-)
+from relocdepth.geometry import rotations as rot
 
 # The DSC network outputs one cell per 32x32 block of the input image (ResNet18 at 1/32 scale).
 DSC_STRIDE = 32
-
-__all__ = [
-    "DSC_STRIDE",
-    "cell_pose_spread",
-    "cell_poses",
-    "cell_rays",
-    "check_image_size",
-    "dsc_cell_centres",
-    "dsc_from_pose",
-    "dsc_grid_size",
-    "mean_cell_pose",
-    "median_cell_pose",
-    "pool_depth",
-]
 
 
 # --------------------------------------------------------------------------------------------
@@ -125,10 +103,10 @@ def cell_poses(dsc: Tensor, depth_cells: Tensor, K: Tensor) -> tuple[Tensor, Ten
     ray = cell_rays(K, h, w)  # (B, N, 3)
     ray_len = ray.norm(dim=-1, keepdim=True)
     dist = depth_cells.flatten(2).transpose(1, 2) * ray_len  # |Q|, (B, N, 1)
-    q_p = minimal_rotation_quat(ray / ray_len)
+    q_p = rot.minimal_rotation_quat(ray / ray_len)
     q_g = axis_angle_to_quaternion(theta)
-    q_wc = quat_mul(q_g, quat_conj(q_p))
-    g_ez = quat_to_matrix(q_g)[..., :, 2]  # G e_z: the ray in the world
+    q_wc = rot.quat_mul(q_g, rot.quat_conj(q_p))
+    g_ez = rot.quat_to_matrix(q_g)[..., :, 2]  # G e_z: the ray in the world
     return q_wc, tau - dist * g_ez
 
 
@@ -146,12 +124,12 @@ def dsc_from_pose(T_wc: Tensor, depth_cells: Tensor, K: Tensor) -> Tensor:
     B, _, h, w = depth_cells.shape
     ray = cell_rays(K, h, w)
     ray_len = ray.norm(dim=-1, keepdim=True)
-    q_p = minimal_rotation_quat(ray / ray_len)
-    q_wc = quat_from_matrix(T_wc[:, :3, :3]).unsqueeze(1)  # (B, 1, 4)
-    q_g = quat_mul(q_wc, q_p)  # G = R_wc R_p
-    theta = quat_log(q_g)
+    q_p = rot.minimal_rotation_quat(ray / ray_len)
+    q_wc = rot.quat_from_matrix(T_wc[:, :3, :3]).unsqueeze(1)  # (B, 1, 4)
+    q_g = rot.quat_mul(q_wc, q_p)  # G = R_wc R_p
+    theta = rot.quat_log(q_g)
     dist = depth_cells.flatten(2).transpose(1, 2) * ray_len
-    tau = T_wc[:, None, :3, 3] + dist * quat_to_matrix(q_g)[..., :, 2]
+    tau = T_wc[:, None, :3, 3] + dist * rot.quat_to_matrix(q_g)[..., :, 2]
     return torch.cat((theta, tau), dim=-1).transpose(1, 2).reshape(B, 6, h, w)
 
 
@@ -197,14 +175,14 @@ def median_cell_pose(q: Tensor, c: Tensor, iters: int = 5) -> tuple[Tensor, Tens
     Returns:
         ``q_med (B, 4)`` (``w >= 0``), ``c_med (B, 3)``.
     """
-    dist = quat_angle(q.unsqueeze(2), q.unsqueeze(1))  # (B, N, N)
+    dist = rot.quat_angle(q.unsqueeze(2), q.unsqueeze(1))  # (B, N, N)
     idx = dist.sum(-1).argmin(dim=1)  # (B,)
     qm = q[torch.arange(q.shape[0], device=q.device), idx]  # (B, 4)
     for _ in range(iters):
-        v = quat_log(quat_mul(quat_conj(qm).unsqueeze(1), q))  # (B, N, 3) tangent at qm
+        v = rot.quat_log(rot.quat_mul(rot.quat_conj(qm).unsqueeze(1), q))  # (B, N, 3) tangent at qm
         wgt = 1.0 / v.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         step = (v * wgt).sum(1) / wgt.sum(1)
-        qm = quat_mul(qm, axis_angle_to_quaternion(step))
+        qm = rot.quat_mul(qm, axis_angle_to_quaternion(step))
         qm = qm / qm.norm(dim=-1, keepdim=True)
     qm = torch.where(qm[..., :1] < 0, -qm, qm)
     return qm, c.median(dim=1).values
@@ -221,5 +199,5 @@ def cell_pose_spread(q: Tensor, c: Tensor, q_ref: Tensor, c_ref: Tensor) -> tupl
         rotation angle (degrees).
     """
     t = (c - c_ref.unsqueeze(1)).norm(dim=-1).median(dim=1).values
-    r = quat_angle(q, q_ref.unsqueeze(1)).median(dim=1).values
+    r = rot.quat_angle(q, q_ref.unsqueeze(1)).median(dim=1).values
     return t, torch.rad2deg(r)

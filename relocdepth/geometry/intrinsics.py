@@ -9,8 +9,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["backproject", "scale_intrinsics"]
-
 
 def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
     """Camera matrices ``(..., 3, 3)`` after resizing by ``(sx, sy)`` (half-pixel convention:

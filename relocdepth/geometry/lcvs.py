@@ -9,8 +9,6 @@ every frame into every other one: all 6 ordered ``(target, source)`` pairs, so t
 
 from __future__ import annotations
 
-__all__ = ["PAIRS_LCVS", "PAIRS_MIDDLE"]
-
 # (target, source) frame indices of a triplet: every ordered pair (loop-closed view synthesis).
 PAIRS_LCVS: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
 # The "w/o LCVS" ablation: the two neighbours warped into the middle frame.

@@ -10,8 +10,6 @@ from torch import Tensor
 
 from relocdepth.geometry.rotations import quat_to_matrix, so3_exp
 
-__all__ = ["invert_pose", "pose_errors", "pose_matrix", "pose_vector_to_matrix"]
-
 
 def pose_matrix(q: Tensor, c: Tensor) -> Tensor:
     """``T_wc (..., 4, 4)`` from rotation quaternion ``(..., 4)`` and camera centre ``(..., 3)``."""

@@ -20,18 +20,6 @@ from torch import Tensor
 # Below this |v| of a unit quaternion the log map uses its series expansion.
 _LOG_SERIES_EPS = 1e-6
 
-__all__ = [
-    "minimal_rotation_quat",
-    "quat_angle",
-    "quat_conj",
-    "quat_from_matrix",
-    "quat_log",
-    "quat_mul",
-    "quat_to_matrix",
-    "so3_exp",
-    "so3_log",
-]
-
 
 def so3_exp(rotvec: Tensor) -> Tensor:
     """Axis-angle ``(..., 3)`` -> rotation matrix ``(..., 3, 3)`` (kornia; safe gradient at 0)."""

@@ -18,8 +18,6 @@ from relocdepth.geometry.poses import invert_pose
 # Points closer than this (in depth units) to the source camera plane are invalid for warping.
 MIN_WARP_DEPTH = 1e-3
 
-__all__ = ["MIN_WARP_DEPTH", "relative_pose", "warp"]
-
 
 def relative_pose(T_wc_t: Tensor, T_wc_s: Tensor) -> Tensor:
     """``T_{t->s} = T(P_s)^-1 T(P_t)`` ``(B, 4, 4)``: maps points in camera t to camera s."""
