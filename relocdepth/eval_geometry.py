@@ -185,12 +185,16 @@ def _spread_problem(x: np.ndarray, name: str) -> str | None:
     return None
 
 
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Sim3:
+def umeyama(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = True,
+    names: tuple[str, str] = ("source", "target"),
+) -> Sim3:
     """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991), with a degeneracy check.
 
     Args:
         src, dst: ``(N, 3)`` corresponding points (N >= 1).
         with_scale: estimate ``s`` (Sim(3)); else ``s = 1`` (SE(3)).
+        names: what ``src`` and ``dst`` are, for the ``degenerate`` message.
 
     Returns:
         The :class:`Sim3`; its ``degenerate`` is set when fewer than 3 points are given, when
@@ -221,7 +225,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Sim3:
     problem = None
     if n < MIN_ALIGN_POSES:
         problem = f"{n} positions; the alignment needs at least {MIN_ALIGN_POSES} not on one line"
-    problem = problem or _spread_problem(x, "source") or _spread_problem(y, "target")
+    problem = problem or _spread_problem(x, names[0]) or _spread_problem(y, names[1])
     if problem is None and S[1] <= COLLINEAR_RATIO**2 * S[0]:
         problem = "the cross-covariance of the positions has rank < 2: the rotation is undetermined"
     return Sim3(s, R, t, problem)

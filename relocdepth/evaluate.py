@@ -3,9 +3,10 @@
 Pose: predict every training and test frame; fit a Sim(3) (Umeyama, with scale) from the
 training predictions' camera centres to the training ground truth; apply it to the test
 predictions (the report flags the fit as degenerate when the centres cannot determine it:
-too few, coincident or collinear); report median errors and the share within 5 cm/5 deg and 10 cm/10 deg (and
-10 cm/5 deg, ACE's and DSAC*'s threshold), per test sequence and overall; per-frame errors with
-each frame's confidence go to a CSV, and the report says how well confidence ranks the errors. Depth: per-frame median scaling over 0.1-10 m (Table II).
+too few, coincident or collinear); report median errors and the share within 5 cm/5 deg and
+10 cm/10 deg (and 10 cm/5 deg, ACE's and DSAC*'s threshold), per test sequence and overall;
+per-frame errors with each frame's confidence go to a CSV, and the report says how well
+confidence ranks the errors. Depth: per-frame median scaling over 0.1-10 m (Table II).
 For context, on the same split: the mean-training-pose and thumbnail-retrieval baselines, the
 constant-depth reference, and the diagnostics of DESIGN.md's Pitfalls (rotation-only
 alignment, relative pose vs identity, raw spread of the predictions).
@@ -70,9 +71,10 @@ class Gathered:
 
 
 def fit_sim3(T_est: np.ndarray, T_gt: np.ndarray) -> EG.Sim3:
-    """Sim(3) taking predicted camera centres (source) to GT centres (target), Umeyama with scale;
+    """Sim(3) taking predicted camera centres to GT centres (Umeyama, with scale);
     its ``degenerate`` says when the centres cannot determine it (e.g. collapsed predictions)."""
-    return EG.umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True)
+    return EG.umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True,
+                      names=("predicted", "ground-truth"))
 
 
 def pose_report(

@@ -191,7 +191,7 @@ def test_evaluate_flags_a_degenerate_fit(
     report = json.loads(report_path.read_text())
     validate("report", report)
     assert report["alignment"]["degenerate"] is True
-    assert "coincide" in report["alignment"]["degenerate_reason"]
+    assert "the predicted positions coincide" in report["alignment"]["degenerate_reason"]
     warnings = [line for line in res.stdout.splitlines() if line.startswith("warning: ")]
     assert len(warnings) == 1 and "degenerate" in warnings[0] and "coincide" in warnings[0]
 
