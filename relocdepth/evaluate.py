@@ -2,9 +2,11 @@
 
 Pose: predict every training and test frame; fit a Sim(3) (Umeyama, with scale) from the
 training predictions' camera centres to the training ground truth; apply it to the test
-predictions; report median errors and the share within 5 cm/5 deg and 10 cm/10 deg (and
-10 cm/5 deg, ACE's and DSAC*'s threshold), per test sequence and overall; per-frame errors with
-each frame's confidence go to a CSV, and the report says how well confidence ranks the errors. Depth: per-frame median scaling over 0.1-10 m (Table II).
+predictions (the report flags the fit as degenerate when the centres cannot determine it:
+too few, coincident or collinear); report median errors and the share within 5 cm/5 deg and
+10 cm/10 deg (and 10 cm/5 deg, ACE's and DSAC*'s threshold), per test sequence and overall;
+per-frame errors with each frame's confidence go to a CSV, and the report says how well
+confidence ranks the errors. Depth: per-frame median scaling over 0.1-10 m (Table II).
 For context, on the same split: the mean-training-pose and thumbnail-retrieval baselines, the
 constant-depth reference, and the diagnostics of DESIGN.md's Pitfalls (rotation-only
 alignment, relative pose vs identity, raw spread of the predictions).
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relocdepth import eval_geometry as EG
 from relocdepth import metrics as M
 from relocdepth.errors import UserError
 from relocdepth.trajectory import sim3_to_dict
@@ -27,7 +30,7 @@ log = logging.getLogger(__name__)
 
 REPORT_FORMAT = "relocdepth-report"
 REPORT_VERSION = 1
-MIN_FIT_FRAMES = 3  # Umeyama needs three non-collinear centres
+MIN_FIT_FRAMES = EG.MIN_ALIGN_POSES  # Umeyama needs three non-collinear centres
 
 
 @dataclass(frozen=True)
@@ -67,40 +70,39 @@ class Gathered:
 # ----------------------------------------------------------------------------- the protocol
 
 
-def fit_sim3(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Sim(3) (s, R, t) taking predicted camera centres to GT centres (Umeyama, with scale)."""
-    from relocdepth.geometry import umeyama
-
-    s, R, t = umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True)
-    return float(s), R.double().cpu().numpy(), t.double().cpu().numpy()
+def fit_sim3(T_est: np.ndarray, T_gt: np.ndarray) -> EG.Sim3:
+    """Sim(3) taking predicted camera centres to GT centres (Umeyama, with scale);
+    its ``degenerate`` says when the centres cannot determine it (e.g. collapsed predictions)."""
+    return EG.umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True,
+                      names=("predicted", "ground-truth"))
 
 
 def pose_report(
     train_est: np.ndarray, train_gt: np.ndarray, test_est: np.ndarray, test_gt: np.ndarray,
     test_sequences: list[str], relative_k: int = 5,
-) -> tuple[dict, tuple[float, np.ndarray, np.ndarray], np.ndarray]:
+) -> tuple[dict, EG.Sim3, np.ndarray]:
     """Pose figures of the protocol from raw predictions; returns (report, sim3, aligned test)."""
-    s, R, t = fit_sim3(train_est, train_gt)
-    train_al = M.apply_sim3(s, R, t, train_est)
-    test_al = M.apply_sim3(s, R, t, test_est)
-    t_err, r_err = M.pose_errors(test_al, test_gt)
-    rot_only = M.rotation_only_errors(
+    fit = fit_sim3(train_est, train_gt)
+    train_al = EG.apply_sim3(fit.scale, fit.R, fit.t, train_est)
+    test_al = EG.apply_sim3(fit.scale, fit.R, fit.t, test_est)
+    t_err, r_err = EG.pose_errors(test_al, test_gt)
+    rot_only = EG.rotation_only_errors(
         train_est[:, :3, :3], train_gt[:, :3, :3], test_est[:, :3, :3], test_gt[:, :3, :3]
     )
     report = {
         "test": M.pose_summary(t_err, r_err),
         "per_sequence": M.pose_summary_by_sequence(t_err, r_err, test_sequences),
-        "train": M.pose_summary(*M.pose_errors(train_al, train_gt)),
+        "train": M.pose_summary(*EG.pose_errors(train_al, train_gt)),
         "rotation_only": {"median_r_deg": float(np.median(rot_only)),
                           "mean_r_deg": float(np.mean(rot_only))},
         "relative": M.relative_pose_errors(test_al, test_gt, test_sequences, relative_k),
         "spread": {
-            "prediction_raw": M.pose_spread(test_est),
-            "prediction_aligned": M.pose_spread(test_al),
-            "ground_truth": M.pose_spread(test_gt),
+            "prediction_raw": EG.pose_spread(test_est),
+            "prediction_aligned": EG.pose_spread(test_al),
+            "ground_truth": EG.pose_spread(test_gt),
         },
     }
-    return report, (s, R, t), test_al
+    return report, fit, test_al
 
 
 def baselines_report(
@@ -110,8 +112,8 @@ def baselines_report(
     mean = M.mean_pose_baseline(train_gt, len(test_gt))
     retrieved, _ = M.retrieval_baseline(train_thumbs, train_gt, test_thumbs)
     return {
-        "mean_pose": M.pose_summary(*M.pose_errors(mean, test_gt)),
-        "retrieval": M.pose_summary(*M.pose_errors(retrieved, test_gt)),
+        "mean_pose": M.pose_summary(*EG.pose_errors(mean, test_gt)),
+        "retrieval": M.pose_summary(*EG.pose_errors(retrieved, test_gt)),
     }
 
 
@@ -224,14 +226,15 @@ def evaluate(
     te = gather(ds, predictor, test_recs, cfg, depth=True, label="test")
     train_est, train_gt = tr.arrays()
     test_est, test_gt = te.arrays()
-    pose, (s, R, t), test_al = pose_report(
+    pose, fit, test_al = pose_report(
         train_est, train_gt, test_est, test_gt, te.sequences, cfg.relative_k
     )
     created = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    alignment = sim3_to_dict(s, R, t, fitted_on=str(ds.root), frames=len(train_recs),
-                             manifest_hash=ds.manifest_hash, created=created)
+    alignment = sim3_to_dict(fit.scale, fit.R, fit.t, fitted_on=str(ds.root),
+                             frames=len(train_recs), manifest_hash=ds.manifest_hash, created=created,
+                             degenerate=fit.degenerate is not None, degenerate_reason=fit.degenerate)
     depth = M.depth_summary(te.depth)
-    t_err, r_err = M.pose_errors(test_al, test_gt)
+    t_err, r_err = EG.pose_errors(test_al, test_gt)
     report = {
         "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
         "tool_version": _tool_version(), "created": created,

@@ -23,11 +23,12 @@ import numpy as np
 
 from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
+from relocdepth.eval_geometry import quat_wxyz_to_xyzw, rotmat_to_quat_wxyz
 from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
-from relocdepth.trajectory import apply_sim3_dict, rotmat_to_quat, sim3_from_dict, tum_lines
+from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
 
@@ -175,7 +176,7 @@ def _record(frame: Frame, index: int, T: np.ndarray, pred: Prediction, i: int, a
         "timestamp": frame.timestamp,
         "T_wc": T.tolist(),
         "t": [float(v) for v in T[:3, 3]],
-        "q": [float(v) for v in rotmat_to_quat(T[:3, :3])],  # qx, qy, qz, qw
+        "q": [float(v) for v in quat_wxyz_to_xyzw(rotmat_to_quat_wxyz(T[:3, :3]))],  # x, y, z, w
         "confidence": float(pred.confidence[i]),
         "spread_t": float(pred.spread_t[i]),
         "spread_r_deg": float(pred.spread_r_deg[i]),

@@ -16,6 +16,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from relocdepth import geometry as geo
+from relocdepth.geometry.lcvs import PAIRS_LCVS, PAIRS_MIDDLE
 from relocdepth.losses import (
     photometric_loss,
     pose_coordinate_loss,
@@ -32,9 +33,6 @@ CONF_TRANS_REL = 0.05
 __all__ = ["LOSS_RESOLUTIONS", "PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "Bootstrap", "MethodConfig",
            "bootstrap_poses", "pairs_for", "predict", "preview", "triplet_loss", "two_view_poses"]
 
-# (target, source) frame indices of a triplet; the middle frame is index 1.
-PAIRS_LCVS: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
-PAIRS_MIDDLE: tuple[tuple[int, int], ...] = ((1, 0), (1, 2))
 # The pixel sets L_p can average over (MethodConfig.photometric_pixels).
 PHOTOMETRIC_PIXELS = ("valid", "all")
 # Where each scale's L_p is computed (MethodConfig.loss_resolution).
@@ -151,7 +149,7 @@ def _absolute_poses(
         T = geo.pose_vector_to_matrix(net_out)
         return T, None, None, None, geo.quat_from_matrix(T[:, :3, :3]), net_out[:, 3:]
     q_cells, c_cells = geo.cell_poses(net_out, geo.pool_depth(depth0), K)
-    agg = geo.mean_pose if aggregate == "mean" else geo.median_pose
+    agg = geo.mean_cell_pose if aggregate == "mean" else geo.median_cell_pose
     q, c = agg(q_cells, c_cells)
     l_c = pose_coordinate_loss(q_cells, c_cells, q, c)
     return geo.pose_matrix(q, c), q_cells, c_cells, l_c, q, c
@@ -403,7 +401,7 @@ def _diagnostics(
     q: Tensor, c: Tensor, T_t2s: Tensor, l_c: Tensor | None, depth0: Tensor
 ) -> dict[str, float]:
     q, c = q.detach(), c.detach()
-    qm, cm = geo.mean_pose(q.unsqueeze(0), c.unsqueeze(0))
+    qm, cm = geo.mean_cell_pose(q.unsqueeze(0), c.unsqueeze(0))
     t_rel, r_rel = geo.pose_errors(T_t2s.detach(), torch.eye(4, dtype=T_t2s.dtype, device=T_t2s.device))
     return {
         "centre_spread": float((c - cm).norm(dim=-1).pow(2).mean().sqrt()),
@@ -466,7 +464,7 @@ def predict(nets: Networks, inputs: Tensor, K: Tensor) -> dict[str, Tensor]:
         zeros = inputs.new_zeros(B)
         return {"T_wc": T, "confidence": torch.ones_like(zeros), "cell_spread_t": zeros,
                 "cell_spread_r_deg": zeros, "depth": depth}
-    spread_t, spread_r = geo.pose_spread(q_cells, c_cells, q, c)
+    spread_t, spread_r = geo.cell_pose_spread(q_cells, c_cells, q, c)
     scale = depth.flatten(1).median(dim=1).values
     confidence = 1.0 / (1.0 + spread_r / CONF_ROT_DEG + spread_t / (CONF_TRANS_REL * scale))
     return {"T_wc": T, "confidence": confidence, "cell_spread_t": spread_t,

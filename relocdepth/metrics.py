@@ -1,4 +1,4 @@
-"""Evaluation metrics (pure numpy): pose errors, depth errors, references and baselines.
+"""Evaluation metrics (pure numpy): pose summaries, depth errors, references and baselines.
 
 Poses are (N, 4, 4) world-from-camera matrices (OpenCV axes). The pose figures follow the
 paper's protocol (Sec. IV, Table I: median position/attitude error after a Sim(3) alignment
@@ -14,6 +14,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from relocdepth.eval_geometry import mean_pose, pose_errors, rotation_angle_deg
+
 # Accuracy thresholds: the paper's 5 cm / 5 deg and 10 cm / 10 deg, and 10 cm / 5 deg, the one
 # ACE and DSAC* report (so figures compare with theirs).
 POSE_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.10, 5.0), (0.10, 10.0))
@@ -23,41 +25,7 @@ DEPTH_RANGE = (0.1, 10.0)
 THUMB_SIZE = (16, 12)
 
 
-# ----------------------------------------------------------------------------- rotations
-
-
-def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """Rotation angle in degrees of (..., 3, 3) rotation matrices (clipped acos of the trace)."""
-    tr = np.trace(R, axis1=-2, axis2=-1)
-    return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
-
-
-def project_to_so3(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest (Frobenius) to a (3, 3) matrix, via SVD with the det-1 fix."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
-
-
-def chordal_mean_rotation(R: np.ndarray) -> np.ndarray:
-    """Chordal L2 mean of (N, 3, 3) rotations (a true rotation mean, unlike averaging angles)."""
-    return project_to_so3(np.asarray(R, dtype=np.float64).sum(axis=0))
-
-
-# ----------------------------------------------------------------------------- pose errors
-
-
-def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame translation error (distance of camera centres) and rotation error (deg).
-
-    T_est, T_gt: (N, 4, 4) world-from-camera. Returns (t_err (N,), r_err_deg (N,)).
-    """
-    T_est, T_gt = np.asarray(T_est, np.float64), np.asarray(T_gt, np.float64)
-    if T_est.shape != T_gt.shape or T_est.shape[-2:] != (4, 4):
-        raise ValueError(f"pose_errors: shapes {T_est.shape} vs {T_gt.shape}, want (N, 4, 4)")
-    t_err = np.linalg.norm(T_est[:, :3, 3] - T_gt[:, :3, 3], axis=-1)
-    R_rel = np.swapaxes(T_est[:, :3, :3], -1, -2) @ T_gt[:, :3, :3]
-    return t_err, rotation_angle_deg(R_rel)
+# ----------------------------------------------------------------------------- pose summaries
 
 
 def pose_summary(t_err: np.ndarray, r_err: np.ndarray) -> dict:
@@ -126,34 +94,6 @@ def confidence_ranking(confidence: np.ndarray, t_err: np.ndarray, r_err: np.ndar
             "spearman_t": spearman(c, t_err), "spearman_r": spearman(c, r_err)}
 
 
-# ----------------------------------------------------------------------------- alignments
-
-
-def apply_sim3(scale: float, R: np.ndarray, t: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
-    """Map (N, 4, 4) poses through x -> s R x + t: rotation R R_wc, centre s R c + t (rigid)."""
-    T = np.array(T_wc, dtype=np.float64, copy=True)
-    T[..., :3, :3] = R @ T[..., :3, :3]
-    T[..., :3, 3] = scale * T[..., :3, 3] @ np.asarray(R).T + np.asarray(t)
-    return T
-
-
-def rotation_alignment(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
-    """The rotation A minimising sum ||A R_est_i - R_gt_i||_F (fitted on rotations only).
-
-    Unlike the Sim(3) fitted on camera centres, it stays meaningful when the predicted centres
-    collapse to a point (DESIGN.md Pitfalls).
-    """
-    return project_to_so3(np.einsum("nij,nkj->ik", R_gt, R_est))
-
-
-def rotation_only_errors(
-    R_est_fit: np.ndarray, R_gt_fit: np.ndarray, R_est: np.ndarray, R_gt: np.ndarray
-) -> np.ndarray:
-    """Rotation errors (deg) of R_est after the rotation-only alignment fitted on (fit) frames."""
-    A = rotation_alignment(R_est_fit, R_gt_fit)
-    return rotation_angle_deg(np.swapaxes(A @ R_est, -1, -2) @ R_gt)
-
-
 # ----------------------------------------------------------------------------- diagnostics
 
 
@@ -174,8 +114,7 @@ def relative_pose_errors(
     inv = np.linalg.inv
     rel_est = inv(T_est[i]) @ T_est[i + k]
     rel_gt = inv(T_gt[i]) @ T_gt[i + k]
-    t_err = np.linalg.norm(rel_est[:, :3, 3] - rel_gt[:, :3, 3], axis=-1)
-    r_err = rotation_angle_deg(np.swapaxes(rel_est[:, :3, :3], -1, -2) @ rel_gt[:, :3, :3])
+    t_err, r_err = pose_errors(rel_est, rel_gt)
     return {
         "k": k, "pairs": int(i.size),
         "median_t_m": float(np.median(t_err)), "median_r_deg": float(np.median(r_err)),
@@ -184,28 +123,7 @@ def relative_pose_errors(
     }
 
 
-def pose_spread(T: np.ndarray) -> dict:
-    """How spread out a set of poses is: RMS distance of centres from their mean (units of T)
-    and the median angle (deg) of rotations from their chordal mean."""
-    T = np.asarray(T, np.float64)
-    c = T[:, :3, 3]
-    mean_R = chordal_mean_rotation(T[:, :3, :3])
-    return {
-        "centre_rms": float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=-1)))),
-        "rot_median_deg": float(np.median(rotation_angle_deg(mean_R.T @ T[:, :3, :3]))),
-    }
-
-
 # ----------------------------------------------------------------------------- baselines
-
-
-def mean_pose(T: np.ndarray) -> np.ndarray:
-    """The mean pose of (N, 4, 4) poses: mean centre, chordal mean rotation."""
-    T = np.asarray(T, np.float64)
-    out = np.eye(4)
-    out[:3, :3] = chordal_mean_rotation(T[:, :3, :3])
-    out[:3, 3] = T[:, :3, 3].mean(axis=0)
-    return out
 
 
 def mean_pose_baseline(T_train_gt: np.ndarray, n_test: int) -> np.ndarray:

@@ -33,6 +33,10 @@ def format_table(report: dict) -> str:
          f"{'10cm/10deg':>11}"),
         _pose_row("relocdepth", pose["test"]),
     ]
+    align = report["alignment"]
+    if align.get("degenerate"):  # older reports lack the field
+        lines.insert(3, f"warning: the Sim(3) fit is degenerate: {align['degenerate_reason']}; the "
+                        "aligned errors below mean nothing (the rotation-only alignment still does)")
     if len(pose["per_sequence"]) > 1:
         lines += [_pose_row(f"  {seq}", s) for seq, s in pose["per_sequence"].items()]
     lines += [

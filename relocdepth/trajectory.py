@@ -1,4 +1,4 @@
-"""Pose I/O in numpy: quaternions, TUM trajectory files, Sim(3) alignment dicts.
+"""Pose I/O in numpy: TUM trajectory files, Sim(3) alignment dicts.
 
 TUM format (what ``evo`` reads): one line per pose, ``timestamp tx ty tz qx qy qz qw``, the
 pose being world-from-camera (camera centre and orientation in the world), quaternion
@@ -13,61 +13,20 @@ from pathlib import Path
 import numpy as np
 
 from relocdepth.errors import UserError
+from relocdepth.eval_geometry import (
+    apply_sim3,
+    poses_from_tum_rows,
+    poses_to_tum_rows,
+    project_to_so3,
+)
 from relocdepth.fileio import write_text_atomic
-from relocdepth.metrics import apply_sim3, project_to_so3
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations -> (..., 4) unit quaternions (qx, qy, qz, qw), qw >= 0.
-
-    Shepperd's method: picks the numerically largest component, so it is stable near 180 deg.
-    """
-    R = np.asarray(R, np.float64)
-    flat = R.reshape(-1, 3, 3)
-    q = np.empty((flat.shape[0], 4))
-    for n, m in enumerate(flat):
-        tr = np.trace(m)
-        cand = np.array([m[0, 0], m[1, 1], m[2, 2], tr])
-        i = int(np.argmax(cand))
-        if i == 3:
-            s = 2.0 * np.sqrt(max(1.0 + tr, 0.0))
-            q[n] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
-        else:
-            j, k = (i + 1) % 3, (i + 2) % 3
-            s = 2.0 * np.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 0.0))
-            v = np.empty(4)
-            v[i] = s / 4
-            v[j] = (m[j, i] + m[i, j]) / s
-            v[k] = (m[k, i] + m[i, k]) / s
-            v[3] = (m[k, j] - m[j, k]) / s
-            q[n] = v
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    q[q[:, 3] < 0] *= -1.0
-    return q.reshape(R.shape[:-2] + (4,))
-
-
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) quaternions (qx, qy, qz, qw), any norm -> (..., 3, 3) rotations."""
-    q = np.asarray(q, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
 
 
 def tum_lines(timestamps: Sequence[float], T_wc: np.ndarray) -> list[str]:
     """TUM lines ``timestamp tx ty tz qx qy qz qw`` for (N, 4, 4) world-from-camera poses."""
-    T_wc = np.asarray(T_wc, np.float64)
-    q = rotmat_to_quat(T_wc[:, :3, :3])
     return [
-        f"{float(ts):.6f} " + " ".join(f"{v:.9g}" for v in (*T[:3, 3], *qq))
-        for ts, T, qq in zip(timestamps, T_wc, q)
+        f"{float(ts):.6f} " + " ".join(f"{v:.9g}" for v in row)
+        for ts, row in zip(timestamps, poses_to_tum_rows(T_wc))
     ]
 
 
@@ -88,11 +47,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             raise UserError(f"{path}:{n}: a TUM line has 8 numbers, found {len(parts)}")
         rows.append([float(p) for p in parts])
     data = np.array(rows, dtype=np.float64).reshape(-1, 8)
-    T = np.tile(np.eye(4), (len(data), 1, 1))
-    T[:, :3, 3] = data[:, 1:4]
-    if len(data):
-        T[:, :3, :3] = quat_to_rotmat(data[:, 4:8])
-    return data[:, 0], T
+    return data[:, 0], poses_from_tum_rows(data[:, 1:])
 
 
 # ----------------------------------------------------------------------------- Sim(3) dicts

@@ -11,9 +11,9 @@ import torch
 
 from relocdepth import geometry as geo
 from relocdepth import metrics as M
+from relocdepth.eval_geometry import pose_errors, quat_wxyz_to_rotmat
 from relocdepth.method import MethodConfig, predict, triplet_loss
 from relocdepth.models import ModelConfig, build_networks
-from relocdepth.trajectory import quat_to_rotmat
 
 torch.set_num_threads(1)
 W, H = 128, 96  # DSC grid 4 x 3: 12 cells
@@ -22,7 +22,7 @@ MIN_D, MAX_D = 0.1, 100.0
 DEPTH = 2.0  # metres-like units of the fake depth network
 K = torch.tensor([[100.0, 0.0, (W - 1) / 2], [0.0, 100.0, (H - 1) / 2], [0.0, 0.0, 1.0]],
                  dtype=torch.float64)
-R0 = quat_to_rotmat(np.array([0.2, -0.4, 0.1, 0.9]))
+R0 = quat_wxyz_to_rotmat(np.array([0.9, 0.2, -0.4, 0.1]))
 C0 = np.array([0.5, -1.0, 2.0])
 
 
@@ -112,14 +112,14 @@ def test_confidence_ranks_errors_when_some_predictions_are_worse() -> None:
         for _ in range(GH * GW):
             axis = rng.normal(size=3)
             angle = np.radians(20.0) * sigma * abs(rng.normal())
-            q = np.r_[np.sin(angle / 2) * axis / np.linalg.norm(axis), np.cos(angle / 2)]
-            rots.append(R0 @ quat_to_rotmat(q))
+            q = np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis / np.linalg.norm(axis)]
+            rots.append(R0 @ quat_wxyz_to_rotmat(q))
             cents.append(C0 + sigma * rng.normal(size=3))
         dscs.append(dsc_of_cell_poses(rots, cents))
     out = run_predict(torch.cat(dscs))
     T_gt = np.tile(np.eye(4), (len(noise), 1, 1))
     T_gt[:, :3, :3], T_gt[:, :3, 3] = R0, C0
-    t_err, r_err = M.pose_errors(out["T_wc"].numpy(), T_gt)
+    t_err, r_err = pose_errors(out["T_wc"].numpy(), T_gt)
     conf = out["confidence"].numpy()
     assert np.all(np.diff(conf) < 0)  # confidence falls with the noise
     ranking = M.confidence_ranking(conf, t_err, r_err)

@@ -14,11 +14,12 @@ from relocdepth.cli.main import app
 from relocdepth.schemas import validate
 from typer.testing import CliRunner
 
+from relocdepth import eval_geometry as EG
 from relocdepth import metrics as M
 from relocdepth.dataset import open_dataset
 from relocdepth.errors import UserError
 from relocdepth.evaluate import baselines_report, pose_report
-from relocdepth.trajectory import quat_to_rotmat, read_tum
+from relocdepth.trajectory import read_tum
 
 
 def trajectory(n: int, seed: int, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -29,16 +30,16 @@ def trajectory(n: int, seed: int, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
     T[:, :3, 3] = np.stack([np.cos(s + seed), 0.5 * np.sin(2 * s), 0.2 * s], 1) + offset
     axis = rng.normal(size=3)
     for i, a in enumerate(s):
-        q = np.r_[np.sin(0.3 * np.sin(a)) * axis / np.linalg.norm(axis), np.cos(0.3 * np.sin(a))]
-        T[i, :3, :3] = quat_to_rotmat(q)
+        q = np.r_[np.cos(0.3 * np.sin(a)), np.sin(0.3 * np.sin(a)) * axis / np.linalg.norm(axis)]
+        T[i, :3, :3] = EG.quat_wxyz_to_rotmat(q)
     return T
 
 
 def sim3(T: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    return M.apply_sim3(s, R, t, T)
+    return EG.apply_sim3(s, R, t, T)
 
 
-R0 = quat_to_rotmat(np.array([0.3, -0.2, 0.5, 0.8]))
+R0 = EG.quat_wxyz_to_rotmat(np.array([0.8, 0.3, -0.2, 0.5]))
 T0 = np.array([2.0, -1.0, 0.5])
 
 
@@ -47,12 +48,13 @@ def test_known_sim3_gives_zero_error() -> None:
     # the "network" predicts the GT in another frame and unit: x_net = (R0^T (x - T0)) / 3
     R_inv, s_inv = R0.T, 1.0 / 3.0
     to_net = (s_inv, R_inv, -s_inv * R_inv @ T0)
-    report, (s, R, t), aligned = pose_report(
+    report, fit, aligned = pose_report(
         sim3(train_gt, *to_net), train_gt, sim3(test_gt, *to_net), test_gt, ["seq-03"] * 12
     )
-    assert s == pytest.approx(3.0)
-    np.testing.assert_allclose(R, R0, atol=1e-9)
-    np.testing.assert_allclose(t, T0, atol=1e-9)
+    assert fit.degenerate is None
+    assert fit.scale == pytest.approx(3.0)
+    np.testing.assert_allclose(fit.R, R0, atol=1e-9)
+    np.testing.assert_allclose(fit.t, T0, atol=1e-9)
     np.testing.assert_allclose(aligned, test_gt, atol=1e-9)
     assert report["test"]["median_t_m"] == pytest.approx(0.0, abs=1e-9)
     assert report["test"]["median_r_deg"] == pytest.approx(0.0, abs=1e-4)
@@ -69,10 +71,10 @@ def test_constructed_test_errors_of_known_size() -> None:
     test_est = test_gt.copy()
     # frames 0-4: 4 cm off along x; frames 5-9: 8 deg off about the camera's z
     test_est[:5, :3, 3] += [0.04, 0.0, 0.0]
-    test_est[5:, :3, :3] = test_est[5:, :3, :3] @ quat_to_rotmat(
-        np.r_[0.0, 0.0, np.sin(np.radians(4.0)), np.cos(np.radians(4.0))])
-    report, (s, _, _), _ = pose_report(train_gt, train_gt, test_est, test_gt, ["a"] * 5 + ["b"] * 5)
-    assert s == pytest.approx(1.0)
+    test_est[5:, :3, :3] = test_est[5:, :3, :3] @ EG.quat_wxyz_to_rotmat(
+        np.r_[np.cos(np.radians(4.0)), 0.0, 0.0, np.sin(np.radians(4.0))])
+    report, fit, _ = pose_report(train_gt, train_gt, test_est, test_gt, ["a"] * 5 + ["b"] * 5)
+    assert fit.scale == pytest.approx(1.0)
     assert report["per_sequence"]["a"]["median_t_m"] == pytest.approx(0.04)
     assert report["per_sequence"]["a"]["median_r_deg"] == pytest.approx(0.0, abs=1e-4)
     assert report["per_sequence"]["b"]["median_r_deg"] == pytest.approx(8.0)
@@ -141,6 +143,9 @@ def test_evaluate_end_to_end_and_alignment_in_localize(
     assert report["depth"]["prediction"]["frames"] == SCENE_FRAMES
     assert 0.0 < report["depth"]["constant_reference"]["abs_rel"] < 1.0
     assert report["saved_alignment"] is True
+    flagged = report["alignment"]["degenerate"]
+    assert flagged == (report["alignment"]["degenerate_reason"] is not None)
+    assert ("warning: the Sim(3) fit is degenerate" in res.stdout) == flagged
 
     # the TUM files parse back: GT equals the shards' poses, errors recomputed from them match
     ds = open_dataset(synth_shards)
@@ -151,7 +156,7 @@ def test_evaluate_end_to_end_and_alignment_in_localize(
     np.testing.assert_allclose(ts, [r.timestamp for r in test], atol=1e-6)
     np.testing.assert_allclose(ts_gt, ts)
     np.testing.assert_allclose(T_gt, np.stack([ds.read_pose(r) for r in test]), atol=1e-6)
-    t_err, _ = M.pose_errors(T_est, T_gt)
+    t_err, _ = EG.pose_errors(T_est, T_gt)
     assert np.median(t_err) == pytest.approx(report["pose"]["test"]["median_t_m"], abs=1e-6)
 
     for plot in report["outputs"]["plots"]:
@@ -164,6 +169,31 @@ def test_evaluate_end_to_end_and_alignment_in_localize(
     rec = json.loads(res.stdout.splitlines()[-1])
     assert rec["aligned"] is True and rec["units"] == "m"
     np.testing.assert_allclose(np.array(rec["T_wc"]), T_est[0], atol=1e-4)
+
+
+def test_evaluate_flags_a_degenerate_fit(
+    run: Path, synth_shards: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A collapsed network (one pose for every image): the Sim(3) cannot be fitted, and says so."""
+    from relocdepth.predictor import Predictor
+
+    predict = Predictor.predict
+
+    def collapsed(self, *args, **kwargs):
+        pred = predict(self, *args, **kwargs)
+        pred.T_wc[:] = np.array([[1.0, 0, 0, 0.3], [0, 1, 0, -0.2], [0, 0, 1, 1.0], [0, 0, 0, 1]])
+        return pred
+
+    monkeypatch.setattr(Predictor, "predict", collapsed)
+    report_path = tmp_path / "collapsed" / "report.json"
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(report_path))
+    assert res.exit_code == 0, res.output
+    report = json.loads(report_path.read_text())
+    validate("report", report)
+    assert report["alignment"]["degenerate"] is True
+    assert "the predicted positions coincide" in report["alignment"]["degenerate_reason"]
+    warnings = [line for line in res.stdout.splitlines() if line.startswith("warning: ")]
+    assert len(warnings) == 1 and "degenerate" in warnings[0] and "coincide" in warnings[0]
 
 
 def test_evaluate_bad_inputs(run: Path, synth_scene: Path, synth_shards: Path, tmp_path: Path) -> None:
@@ -233,7 +263,7 @@ def test_per_frame_csv_confidence_ranking_and_evo_ape(
     tum = report["outputs"]["tum"]["seq-03"]
     _, T_est = read_tum(tum["estimate"])
     _, T_gt = read_tum(tum["groundtruth"])
-    t_tum, r_tum = M.pose_errors(T_est, T_gt)
+    t_tum, r_tum = EG.pose_errors(T_est, T_gt)
     np.testing.assert_allclose(t_csv, t_tum, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(r_csv, r_tum, rtol=1e-4, atol=1e-3)
     test_summary = report["pose"]["test"]

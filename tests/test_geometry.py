@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -46,7 +45,7 @@ def test_identity_round_trip_every_cell_mean_and_median(size: tuple[int, int]) -
     R = geo.quat_to_matrix(q)
     assert (R - T[:, None, :3, :3]).abs().max() < 1e-6
     assert (c - T[:, None, :3, 3]).abs().max() < 1e-6
-    for agg in (geo.mean_pose, geo.median_pose):
+    for agg in (geo.mean_cell_pose, geo.median_cell_pose):
         qa, ca = agg(q, c)
         assert (geo.pose_matrix(qa, ca) - T).abs().max() < 1e-6, agg.__name__
 
@@ -59,9 +58,9 @@ def test_round_trip_near_pi_and_identity() -> None:
     depth = torch.full((3, 1, 3, 4), 2.0, dtype=D64)
     K = _K(3)
     q, c = geo.cell_poses(geo.dsc_from_pose(T, depth, K), depth, K)
-    for agg in (geo.mean_pose, geo.median_pose):
-        qa, _ = agg(q, c)
-        assert geo.rotation_error_deg(geo.quat_to_matrix(qa), T[:, :3, :3]).max() < 1e-5
+    for agg in (geo.mean_cell_pose, geo.median_cell_pose):
+        qa, ca = agg(q, c)
+        assert geo.pose_errors(geo.pose_matrix(qa, ca), T)[1].max() < 1e-5
     assert torch.allclose(geo.so3_exp(geo.so3_log(T[:, :3, :3])), T[:, :3, :3], atol=1e-7)
 
 
@@ -100,11 +99,11 @@ def test_median_is_robust_to_outlier_cells() -> None:
     bad = torch.rand(2, 1, 6, 8, generator=gen) < 0.3
     dsc = torch.where(bad, dsc + 2.0 * torch.randn(dsc.shape, generator=gen, dtype=D64), dsc)
     q, c = geo.cell_poses(dsc, depth, K)
-    t_med, r_med = geo.pose_errors(geo.pose_matrix(*geo.median_pose(q, c)), T)
-    t_mean, r_mean = geo.pose_errors(geo.pose_matrix(*geo.mean_pose(q, c)), T)
+    t_med, r_med = geo.pose_errors(geo.pose_matrix(*geo.median_cell_pose(q, c)), T)
+    t_mean, r_mean = geo.pose_errors(geo.pose_matrix(*geo.mean_cell_pose(q, c)), T)
     assert t_med.max() < 0.05 and r_med.max() < 1.0
     assert (t_mean > 3 * t_med).all() and (r_mean > 3 * r_med).all()
-    spread_t, spread_r = geo.pose_spread(q, c, *geo.median_pose(q, c))
+    spread_t, spread_r = geo.cell_pose_spread(q, c, *geo.median_cell_pose(q, c))
     assert (spread_t > 0).all() and (spread_r > 0).all()
 
 
@@ -182,7 +181,7 @@ def test_gradcheck_cell_poses() -> None:
 
     def fn(dsc: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, ...]:
         q, c = geo.cell_poses(dsc, depth, K)
-        qm, cm = geo.mean_pose(q, c)
+        qm, cm = geo.mean_cell_pose(q, c)
         return q, c, qm, cm
 
     assert torch.autograd.gradcheck(fn, (dsc, depth))
@@ -213,33 +212,16 @@ def test_log_map_gradients_finite_at_zero_and_pi() -> None:
     assert torch.isfinite(x.grad).all()
 
 
-# ------------------------------------------------------------------------------ alignment, errors
+# ------------------------------------------------------------------------------ errors, intrinsics
 
 
-def test_umeyama_recovers_known_sim3_from_noisy_points() -> None:
-    rng = np.random.default_rng(7)
-    src = rng.normal(size=(200, 3))
-    R = geo.so3_exp(torch.tensor([0.3, -1.2, 0.7], dtype=D64)).numpy()
-    s, t = 2.5, np.array([1.0, -2.0, 0.5])
-    dst = s * src @ R.T + t + rng.normal(scale=0.01, size=src.shape)
-    s_e, R_e, t_e = geo.umeyama(src, dst)
-    assert abs(s_e - s) < 0.01
-    assert float(geo.rotation_error_deg(R_e, torch.as_tensor(R))) < 0.1
-    assert np.abs(t_e.numpy() - t).max() < 0.01
-    s1, _, _ = geo.umeyama(torch.as_tensor(src), torch.as_tensor(dst), with_scale=False)
-    assert s1 == 1.0
-    T = geo.pose_vector_to_matrix(torch.randn(5, 6, dtype=D64))
-    aligned = geo.apply_sim3(s_e, R_e, t_e, T)
-    assert torch.allclose(aligned[:, :3, 3], s_e * T[:, :3, 3] @ R_e.T + t_e)
-    with pytest.raises(ValueError):
-        geo.umeyama(src[:2], dst[:2])
-
-
-def test_error_functions() -> None:
-    R = geo.so3_exp(torch.tensor([[0.0, 0.0, math.radians(30)], [1e-7, 0, 0], [math.pi, 0, 0]], dtype=D64))
-    err = geo.rotation_error_deg(torch.eye(3, dtype=D64).expand(3, 3, 3), R)
-    assert torch.allclose(err, torch.tensor([30.0, math.degrees(1e-7), 180.0], dtype=D64), atol=1e-9)
-    assert float(geo.translation_error(torch.zeros(3), torch.tensor([3.0, 4.0, 0.0]))) == 5.0
+def test_pose_errors_near_0_and_180_degrees() -> None:
+    rotvec = torch.tensor([[0.0, 0.0, math.radians(30)], [1e-7, 0, 0], [math.pi, 0, 0]], dtype=D64)
+    centres = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=D64)
+    T = geo.pose_vector_to_matrix(torch.cat((rotvec, centres), -1))
+    t_err, r_err = geo.pose_errors(torch.eye(4, dtype=D64).expand(3, 4, 4), T)
+    assert torch.allclose(r_err, torch.tensor([30.0, math.degrees(1e-7), 180.0], dtype=D64), atol=1e-9)
+    assert torch.allclose(t_err, torch.tensor([5.0, 0.0, 1.0], dtype=D64))
 
 
 def test_scale_intrinsics_half_pixel() -> None:

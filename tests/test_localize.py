@@ -14,7 +14,8 @@ from relocdepth.ingest.intrinsics import write_intrinsics_yaml
 from typer.testing import CliRunner
 
 from relocdepth.camera import Intrinsics
-from relocdepth.trajectory import quat_to_rotmat, read_tum
+from relocdepth.eval_geometry import quat_wxyz_to_rotmat, quat_xyzw_to_wxyz
+from relocdepth.trajectory import read_tum
 
 FRAMES = 6  # frames of the query folder / video (few: forward passes are the slow part)
 
@@ -74,7 +75,7 @@ def test_folder_gives_proper_rotations_and_is_deterministic(run: Path, folder: P
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
         assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-6)
         np.testing.assert_allclose(T[3], [0, 0, 0, 1])
-        np.testing.assert_allclose(quat_to_rotmat(np.array(r["q"])), R, atol=1e-6)
+        np.testing.assert_allclose(quat_wxyz_to_rotmat(quat_xyzw_to_wxyz(r["q"])), R, atol=1e-6)
         np.testing.assert_allclose(r["t"], T[:3, 3])
         assert 0.0 < r["confidence"] <= 1.0
         assert r["aligned"] is False and r["units"] == "network"

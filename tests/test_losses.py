@@ -67,7 +67,7 @@ def test_smoothness_is_scale_invariant_and_edge_aware() -> None:
 def test_pose_coordinate_loss() -> None:
     q = torch.tensor([1.0, 0, 0, 0]).expand(2, 5, 4).clone().requires_grad_()
     c = torch.zeros(2, 5, 3, requires_grad=True)
-    qm, cm = geo.mean_pose(q, c)
+    qm, cm = geo.mean_cell_pose(q, c)
     lc = pose_coordinate_loss(q, c, qm, cm)
     assert torch.allclose(lc, torch.zeros(2))
     lc.sum().backward()
@@ -75,7 +75,7 @@ def test_pose_coordinate_loss() -> None:
     c2 = torch.zeros(1, 2, 3)
     c2[0, 1, 0] = 2.0
     q2 = torch.tensor([1.0, 0, 0, 0]).expand(1, 2, 4)
-    assert torch.allclose(pose_coordinate_loss(q2, c2, *geo.mean_pose(q2, c2)), torch.tensor([1.0]))
+    assert torch.allclose(pose_coordinate_loss(q2, c2, *geo.mean_cell_pose(q2, c2)), torch.tensor([1.0]))
 
 
 # ------------------------------------------------------------------------ warp with ground truth

@@ -170,7 +170,7 @@ def test_initial_dsc_gives_finite_nondegenerate_poses() -> None:
         dsc = nets.dsc(x)
         depth = disp_to_depth(nets.depth(x)[0])
         q, c = geo.cell_poses(dsc, geo.pool_depth(depth), K)
-        qm, cm = geo.mean_pose(q, c)
+        qm, cm = geo.mean_cell_pose(q, c)
     assert dsc.abs().max() < 0.5  # small initial DSC: G ~ I, tau ~ 0
     assert torch.isfinite(q).all() and torch.isfinite(c).all()
     assert torch.isfinite(geo.pose_matrix(qm, cm)).all()

@@ -1,0 +1,62 @@
+"""View synthesis in torch: the relative pose of two cameras and the warp of one image into the other.
+
+``T_{t->s} = T(P_s)^-1 T(P_t)``; the synthesised target samples ``I_s`` at
+``K_s T_{t->s} D_t K_t^-1 p`` (paper Sec. III-B). Which pairs of a triplet are warped is
+:mod:`relocdepth.geometry.lcvs`.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from kornia.geometry.conversions import normalize_pixel_coordinates
+from torch import Tensor
+
+from relocdepth.geometry.intrinsics import backproject
+from relocdepth.geometry.poses import invert_pose
+
+# Points closer than this (in depth units) to the source camera plane are invalid for warping.
+MIN_WARP_DEPTH = 1e-3
+
+
+def relative_pose(T_wc_t: Tensor, T_wc_s: Tensor) -> Tensor:
+    """``T_{t->s} = T(P_s)^-1 T(P_t)`` ``(B, 4, 4)``: maps points in camera t to camera s."""
+    return invert_pose(T_wc_s) @ T_wc_t
+
+
+def warp(
+    image_s: Tensor, depth_t: Tensor, T_t2s: Tensor, K_t: Tensor, K_s: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Synthesise the target view from the source: sample ``I_s`` at ``K_s T_{t->s} D_t K_t^-1 p``.
+
+    Args:
+        image_s: ``(B, C, H, W)`` source image.
+        depth_t: ``(B, 1, H, W)`` target depth (same size).
+        T_t2s: ``(B, 4, 4)`` target-to-source transform (:func:`relative_pose`).
+        K_t, K_s: ``(B, 3, 3)`` intrinsics of target and source at ``H x W``.
+
+    Returns:
+        ``warped (B, C, H, W)`` (bilinear, border padding) and ``valid (B, 1, H, W)`` float mask:
+        the point lies in front of the source camera and projects inside the source image.
+
+    Example:
+        >>> T_ts = relative_pose(T_wc_t, T_wc_s)
+        >>> I_hat, valid = warp(I_s, D_t, T_ts, K_t, K_s)
+    """
+    B, _, H, W = depth_t.shape
+    pts = backproject(depth_t, K_t).reshape(B, 3, -1)
+    pts_s = T_t2s[:, :3, :3] @ pts + T_t2s[:, :3, 3:]
+    z = pts_s[:, 2:3]
+    in_front = z > MIN_WARP_DEPTH
+    proj = K_s @ pts_s
+    uv = proj[:, :2] / torch.where(in_front, z, torch.ones_like(z))  # (B, 2, HW)
+    uv = uv.transpose(1, 2).reshape(B, H, W, 2)
+    # in image = inside its continuous extent [-0.5, W - 0.5] (pixel centres at integers); the
+    # half-pixel rim samples the border pixel, and an identity warp stays valid despite roundoff
+    u, v = uv[..., 0], uv[..., 1]
+    inside = (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
+    valid = (inside & in_front.reshape(B, H, W)).unsqueeze(1).to(image_s.dtype)
+    # kornia maps pixel indices to [-1, 1] with pixel centres at +-1 (align_corners=True).
+    grid = normalize_pixel_coordinates(uv, H, W)
+    warped = F.grid_sample(image_s, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return warped, valid
