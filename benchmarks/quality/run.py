@@ -80,14 +80,18 @@ RECIPES: dict[str, list[str]] = {
     "cpu-bootstrap-decoder": ["--recipe", "cpu-bootstrap", "--loss-resolution", "decoder"],
     "cpu-posenet": ["--recipe", "cpu-posenet"],
     "cpu-essential": ["--recipe", "cpu-bootstrap", "--bootstrap", "essential"],
-    "cpu-bootstrap-w10": ["--recipe", "cpu-bootstrap", "--window", "10"],
+    # `oracle-gt-w10`: the GT-pose oracle at the bootstrap recipes' +-10 frames (their yardstick).
+    "oracle-gt-w10": ["--recipe", "cpu", "--window", "10", "--loss-resolution", "decoder",
+                      "--bootstrap", "oracle-gt", "--bootstrap-steps", "100000000"],
+    # `cpu-bootstrap-w3`: the bootstrap recipe at the `cpu` recipe's +-3 frames.
+    "cpu-bootstrap-w3": ["--recipe", "cpu-bootstrap", "--window", "3"],
     "cpu-bootstrap-no-lcvs": ["--recipe", "cpu-bootstrap", "--no-lcvs"],
     "cpu-bootstrap-no-dsc": ["--recipe", "cpu-bootstrap", "--no-dsc"],
 }
 # A walk-through moves ~10 cm per frame (hololens-office), 7-Scenes ~0.7 cm: its window is in
 # frames too, so rows on it use +-2 (last option wins).
 WALK_WINDOW = ["--window", "2"]
-OWN_WINDOW = {"cpu-bootstrap-w10"}  # rows that keep their own window there
+OWN_WINDOW: set[str] = set()  # rows that keep their own window there
 DEFAULT_ROWS = "paper,cpu,no-lcvs,no-dsc"
 
 # "Clearly" below a reference (rungs 1 and 2): at most this fraction of it.
