@@ -12,6 +12,10 @@
    Each repeat measures every variant once, one after the other; the ratio of a repeat is taken
    between runs seconds apart, and the median and range over repeats are printed (on a shared
    machine the load changes between repeats far more than within one).
+4. ``--profile``: where a video ingest's CPU goes, per thread role (CPU seconds of each thread,
+   ``time.thread_time``): the decode thread (OpenCV's frame conversion and copy), FFmpeg's own
+   decoder threads (the process's CPU not spent in any Python thread), the pool (of which the JPEG
+   encode), the writing thread (of which tar writes) and the hashing thread.
 
 The scene is random-texture frames (tracking random texture costs what tracking a room costs: same
 corners, same pyramid) (rendering 1000 frames at 640x480 with ``relocdepth.synth``
@@ -20,7 +24,7 @@ Files are read once before timing so that both sides start from a warm page cach
 ``--repeats`` times alternately and the best time counts (the 7-Scenes measures).
 
     python benchmarks/bench_ingest.py [--frames 1002] [--video-frames 300] [--repeats 2] [--video-only]
-                                      [--no-png]
+                                      [--no-png] [--profile]
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -207,6 +212,76 @@ def measure_video(video: Path, kfile: Path, work: Path, repeats: int, png: bool)
     print(f"  bound on 2 free cores, 2 x decode CPU / ingest CPU: {spread(bound)}")
 
 
+@contextlib.contextmanager
+def thread_cpu_probes(cpu: dict[str, float]) -> Iterator[None]:
+    """Add each ingest thread role's CPU seconds to ``cpu`` while the block runs."""
+    from relocdepth.ingest import prefetch, process, writer
+
+    lock = threading.Lock()
+
+    def add(key: str, t0: float) -> None:
+        with lock:
+            cpu[key] = cpu.get(key, 0.0) + time.thread_time() - t0
+
+    def timed_method(cls: type, name: str, key: str):
+        orig = getattr(cls, name)
+
+        def wrapper(*args, **kwargs):
+            t0 = time.thread_time()
+            try:
+                return orig(*args, **kwargs)
+            finally:
+                add(key, t0)
+
+        return orig, wrapper
+
+    def background(items, depth):
+        def produce():
+            t0 = time.thread_time()
+            try:
+                yield from items
+            finally:
+                add("decode thread", t0)
+
+        return prefetch.background(produce(), depth)
+
+    patches = [(process.SequenceProcessor, "prepare", "pool"),
+               (process.SequenceProcessor, "_encode", "pool: JPEG encode"),
+               (writer._Hasher, "run", "hashing thread"),
+               (writer.ShardWriter, "add", "writing thread: tar writes")]
+    saved = [(cls, name, *timed_method(cls, name, key)) for cls, name, key in patches]
+    saved_bg = ingest_run.background
+    try:
+        for cls, name, _, wrapper in saved:
+            setattr(cls, name, wrapper)
+        ingest_run.background = background
+        t0 = time.thread_time()
+        yield
+        add("writing thread", t0)
+    finally:
+        for cls, name, orig, _ in saved:
+            setattr(cls, name, orig)
+        ingest_run.background = saved_bg
+
+
+def profile_video(video: Path, kfile: Path, work: Path, repeats: int) -> None:
+    """CPU ms per frame of each thread role of a video ingest (JPEG), median and range."""
+    per_role: dict[str, list[float]] = {}
+    for _ in range(repeats):
+        cpu: dict[str, float] = {}
+        with thread_cpu_probes(cpu), timed() as t:
+            n = time_ingest([video], work, IngestConfig(intrinsics=str(kfile)))[1]
+        python = sum(v for k, v in cpu.items() if ":" not in k)
+        cpu["FFmpeg decoder threads (process - Python threads)"] = t.cpu - python
+        cpu["process"] = t.cpu
+        for k, v in cpu.items():
+            per_role.setdefault(k, []).append(v / n * 1e3)
+    print(f"video ingest CPU ms/frame by thread, median (range) of {repeats} runs, "
+          f"load average {os.getloadavg()[0]:.1f}:")
+    for k, v in sorted(per_role.items()):
+        print(f"  {k}: {statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1002)
@@ -215,6 +290,7 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "relocdepth-bench")
     ap.add_argument("--video-only", action="store_true", help="skip the 7-Scenes vs tar measure")
     ap.add_argument("--no-png", action="store_true", help="skip the --video-format png measure (slow)")
+    ap.add_argument("--profile", action="store_true", help="also: video ingest CPU per thread role")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -240,6 +316,8 @@ def main() -> None:
                   f"(default on if <= 1.5); vs tar {t_par / t_tar:.2f}")
         warm(video.parent)
         measure_video(video, kfile, work, args.repeats, png=not args.no_png)
+        if args.profile:
+            profile_video(video, kfile, work, args.repeats)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     sys.stdout.flush()
