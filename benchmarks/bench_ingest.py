@@ -41,9 +41,10 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -223,10 +224,10 @@ def thread_cpu_probes(cpu: dict[str, float]) -> Iterator[None]:
         with lock:
             cpu[key] = cpu.get(key, 0.0) + time.thread_time() - t0
 
-    def timed_method(cls: type, name: str, key: str):
+    def timed_method(cls: type, name: str, key: str) -> tuple[Callable, Callable]:
         orig = getattr(cls, name)
 
-        def wrapper(*args, **kwargs):
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
             t0 = time.thread_time()
             try:
                 return orig(*args, **kwargs)
@@ -235,8 +236,8 @@ def thread_cpu_probes(cpu: dict[str, float]) -> Iterator[None]:
 
         return orig, wrapper
 
-    def background(items, depth):
-        def produce():
+    def background(items: Iterator, depth: int) -> Iterator:
+        def produce() -> Iterator:
             t0 = time.thread_time()
             try:
                 yield from items
