@@ -184,6 +184,7 @@ def measure_video(video: Path, kfile: Path, work: Path, repeats: int, png: bool)
     vcfg = IngestConfig(intrinsics=str(kfile))
     keys = ["decode", *(k for k in VIDEO_VARIANTS if png or k != "png")]
     runs: dict[str, list[Timed]] = {k: [] for k in keys}
+    time_ingest([video], work, vcfg)  # untimed: imports and first-use costs (pyarrow, codecs)
     for _ in range(repeats):
         t, nv = time_decode(video)
         runs["decode"].append(t)
