@@ -7,16 +7,24 @@
 3. Video ingest frames/s vs plain OpenCV decoding of the same file. Goal: >= 0.8x. Printed beside
    it: the same decode + JPEG encode + sha256 done one after the other in one thread (what ingest
    would cost without overlapping them), ingest with its decode thread switched off, and the CPU
-   time per frame of each (all threads of the process): with N cores, ingest can reach at most
-   N x (decode CPU) / (ingest CPU) of the decode rate.
+   time per frame of each (all threads of the process): with N free cores, ingest can reach at
+   most N x (decode CPU) / (ingest CPU) of the decode rate (printed as the bound for N = 2).
+   Each repeat measures every variant once, one after the other; the ratio of a repeat is taken
+   between runs seconds apart, and the median and range over repeats are printed (on a shared
+   machine the load changes between repeats far more than within one).
+4. ``--profile``: where a video ingest's CPU goes, per thread role (CPU seconds of each thread,
+   ``time.thread_time``): the decode thread (OpenCV's frame conversion and copy), FFmpeg's own
+   decoder threads (the process's CPU not spent in any Python thread), the pool (of which the JPEG
+   encode), the writing thread (of which tar writes) and the hashing thread.
 
 The scene is random-texture frames (tracking random texture costs what tracking a room costs: same
 corners, same pyramid) (rendering 1000 frames at 640x480 with ``relocdepth.synth``
 takes far longer than the benchmark); it is cached in ``--cache`` (default /tmp/relocdepth-bench).
 Files are read once before timing so that both sides start from a warm page cache; each side runs
-``--repeats`` times alternately and the best time counts.
+``--repeats`` times alternately and the best time counts (the 7-Scenes measures).
 
     python benchmarks/bench_ingest.py [--frames 1002] [--video-frames 300] [--repeats 2] [--video-only]
+                                      [--no-png] [--profile]
 """
 
 from __future__ import annotations
@@ -27,13 +35,16 @@ import hashlib
 import logging
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -160,6 +171,119 @@ def time_decode(video: Path, encode: bool = False) -> tuple[Timed, int]:
     return t, n
 
 
+VIDEO_VARIANTS = {
+    "serial": "decode+encode+hash in series",
+    "jpg": "ingest (jpg)",
+    "main": "ingest (jpg), decoding on the main thread",
+    "png": "ingest (png)",
+}
+
+
+def measure_video(video: Path, kfile: Path, work: Path, repeats: int, png: bool) -> None:
+    """Decode vs ingest variants, each once per repeat; per-repeat ratios, median and range."""
+    vcfg = IngestConfig(intrinsics=str(kfile))
+    keys = ["decode", *(k for k in VIDEO_VARIANTS if png or k != "png")]
+    runs: dict[str, list[Timed]] = {k: [] for k in keys}
+    time_ingest([video], work, vcfg)  # untimed: imports and first-use costs (pyarrow, codecs)
+    for _ in range(repeats):
+        t, nv = time_decode(video)
+        runs["decode"].append(t)
+        runs["serial"].append(time_decode(video, encode=True)[0])
+        runs["jpg"].append(time_ingest([video], work, vcfg)[0])
+        with decode_on_main_thread():
+            runs["main"].append(time_ingest([video], work, vcfg)[0])
+        if png:
+            runs["png"].append(time_ingest([video], work, replace(vcfg, video_format="png"))[0])
+
+    def spread(values: list[float], fmt: str = ".2f") -> str:
+        return (f"{statistics.median(values):{fmt}} (range {min(values):{fmt}}-{max(values):{fmt}}, "
+                f"{len(values)} runs)")
+
+    dec = runs["decode"]
+    cpu_dec = [t.cpu / nv * 1e3 for t in dec]
+    print(f"video: {nv} frames {SIZE[0]}x{SIZE[1]} mp4v; OpenCV decode frames/s "
+          f"{spread([nv / t.wall for t in dec], '.1f')}; CPU ms/frame {spread(cpu_dec)}; "
+          f"load average {os.getloadavg()[0]:.1f} at the end")
+    for key in keys[1:]:
+        ratios = [d.wall / t.wall for d, t in zip(dec, runs[key])]
+        cpu = [t.cpu / nv * 1e3 for t in runs[key]]
+        print(f"  {VIDEO_VARIANTS[key]}: ratio to decode {spread(ratios)}"
+              f"{' (goal >= 0.8)' if key == 'jpg' else ''}; frames/s "
+              f"{spread([nv / t.wall for t in runs[key]], '.1f')}; CPU ms/frame {spread(cpu)}")
+    bound = [2 * d.cpu / t.cpu for d, t in zip(dec, runs["jpg"])]
+    print(f"  bound on 2 free cores, 2 x decode CPU / ingest CPU: {spread(bound)}")
+
+
+@contextlib.contextmanager
+def thread_cpu_probes(cpu: dict[str, float]) -> Iterator[None]:
+    """Add each ingest thread role's CPU seconds to ``cpu`` while the block runs."""
+    from relocdepth.ingest import prefetch, process, writer
+
+    lock = threading.Lock()
+
+    def add(key: str, t0: float) -> None:
+        with lock:
+            cpu[key] = cpu.get(key, 0.0) + time.thread_time() - t0
+
+    def timed_method(cls: type, name: str, key: str) -> tuple[Callable, Callable]:
+        orig = getattr(cls, name)
+
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            t0 = time.thread_time()
+            try:
+                return orig(*args, **kwargs)
+            finally:
+                add(key, t0)
+
+        return orig, wrapper
+
+    def background(items: Iterator, depth: int) -> Iterator:
+        def produce() -> Iterator:
+            t0 = time.thread_time()
+            try:
+                yield from items
+            finally:
+                add("decode thread", t0)
+
+        return prefetch.background(produce(), depth)
+
+    patches = [(process.SequenceProcessor, "prepare", "pool"),
+               (process.SequenceProcessor, "_encode", "pool: JPEG encode"),
+               (writer._Hasher, "run", "hashing thread"),
+               (writer.ShardWriter, "add", "writing thread: tar writes")]
+    saved = [(cls, name, *timed_method(cls, name, key)) for cls, name, key in patches]
+    saved_bg = ingest_run.background
+    try:
+        for cls, name, _, wrapper in saved:
+            setattr(cls, name, wrapper)
+        ingest_run.background = background
+        t0 = time.thread_time()
+        yield
+        add("writing thread", t0)
+    finally:
+        for cls, name, orig, _ in saved:
+            setattr(cls, name, orig)
+        ingest_run.background = saved_bg
+
+
+def profile_video(video: Path, kfile: Path, work: Path, repeats: int) -> None:
+    """CPU ms per frame of each thread role of a video ingest (JPEG), median and range."""
+    per_role: dict[str, list[float]] = {}
+    for _ in range(repeats):
+        cpu: dict[str, float] = {}
+        with thread_cpu_probes(cpu), timed() as t:
+            n = time_ingest([video], work, IngestConfig(intrinsics=str(kfile)))[1]
+        python = sum(v for k, v in cpu.items() if ":" not in k)
+        cpu["FFmpeg decoder threads (process - Python threads)"] = t.cpu - python
+        cpu["process"] = t.cpu
+        for k, v in cpu.items():
+            per_role.setdefault(k, []).append(v / n * 1e3)
+    print(f"video ingest CPU ms/frame by thread, median (range) of {repeats} runs, "
+          f"load average {os.getloadavg()[0]:.1f}:")
+    for k, v in sorted(per_role.items()):
+        print(f"  {k}: {statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1002)
@@ -167,6 +291,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "relocdepth-bench")
     ap.add_argument("--video-only", action="store_true", help="skip the 7-Scenes vs tar measure")
+    ap.add_argument("--no-png", action="store_true", help="skip the --video-format png measure (slow)")
+    ap.add_argument("--profile", action="store_true", help="also: video ingest CPU per thread role")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -191,26 +317,9 @@ def main() -> None:
             print(f"  ingest --pair-parallax: {t_par:.2f} s   ratio with/without = {t_par / t_ing:.2f} "
                   f"(default on if <= 1.5); vs tar {t_par / t_tar:.2f}")
         warm(video.parent)
-        runs: dict[str, list[Timed]] = {"decode": [], "serial": [], "jpg": [], "main": [], "png": []}
-        vcfg = IngestConfig(intrinsics=str(kfile))
-        for _ in range(args.repeats):
-            t, nv = time_decode(video)
-            runs["decode"].append(t)
-            runs["serial"].append(time_decode(video, encode=True)[0])
-            runs["jpg"].append(time_ingest([video], work, vcfg)[0])
-            with decode_on_main_thread():
-                runs["main"].append(time_ingest([video], work, vcfg)[0])
-            runs["png"].append(time_ingest([video], work, replace(vcfg, video_format="png"))[0])
-        best = {k: min(v, key=lambda t: t.wall) for k, v in runs.items()}
-        fps_dec = nv / best["decode"].wall
-        print(f"video: {nv} frames {SIZE[0]}x{SIZE[1]} mp4v; OpenCV decode {fps_dec:.1f} frames/s, "
-              f"{best['decode'].cpu / nv * 1e3:.2f} ms CPU/frame")
-        for key, label in (("serial", "decode+encode+hash in series"), ("jpg", "ingest (jpg)"),
-                           ("main", "ingest (jpg), decoding on the main thread"), ("png", "ingest (png)")):
-            t = best[key]
-            fps = nv / t.wall
-            print(f"  {label}: {fps:.1f} frames/s   ratio to decode = {fps / fps_dec:.2f}"
-                  f"{' (goal >= 0.8)' if key == 'jpg' else ''}   {t.cpu / nv * 1e3:.2f} ms CPU/frame")
+        measure_video(video, kfile, work, args.repeats, png=not args.no_png)
+        if args.profile:
+            profile_video(video, kfile, work, args.repeats)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     sys.stdout.flush()

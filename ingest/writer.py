@@ -25,11 +25,12 @@ BLOCK = 512
 # Fixed member metadata so that the same input gives byte-identical shards (reproducible sha256).
 MEMBER_MTIME = 0
 MEMBER_MODE = 0o644
-# Chunks queued for the hashing thread (bounds memory to a few frames).
-HASH_QUEUE = 64
+# Samples queued for the hashing thread (bounds memory to a few frames).
+HASH_QUEUE = 8
 # Small writes are buffered; a write larger than this goes straight to the file (no copy).
 WRITE_BUFFER = 1 << 16
-# Members smaller than this are written together with their padding in one call.
+# Members smaller than this are joined with their header and padding into one chunk (one copy
+# of a few kB); larger ones are written and hashed as they are.
 SMALL_MEMBER = 1 << 16
 
 
@@ -67,22 +68,56 @@ def ustar_header(name: str, size: int) -> bytes:
 
 
 class _Hasher(threading.Thread):
-    """sha256 in a background thread (hashlib releases the GIL), overlapping it with file I/O."""
+    """sha256 in a background thread (hashlib releases the GIL), overlapping it with file I/O.
+
+    It is handed one list of chunks per sample: one queue hand-over (a thread wake-up) per
+    sample instead of one per header, member and padding.
+    """
 
     def __init__(self) -> None:
         super().__init__(daemon=True)
         self.sha = hashlib.sha256()
-        self.q: queue.Queue[bytes | None] = queue.Queue(maxsize=HASH_QUEUE)
+        self.q: queue.Queue[list[bytes] | None] = queue.Queue(maxsize=HASH_QUEUE)
         self.start()
 
     def run(self) -> None:
-        while (chunk := self.q.get()) is not None:
-            self.sha.update(chunk)
+        while (chunks := self.q.get()) is not None:
+            for chunk in chunks:
+                self.sha.update(chunk)
 
     def hexdigest(self) -> str:
         self.q.put(None)
         self.join()
         return self.sha.hexdigest()
+
+
+def tar_chunks(key: str, members: dict[str, bytes], start: int) -> tuple[list[bytes], dict[str, int]]:
+    """The tar bytes of one sample's members, as chunks, and each member's data offset.
+
+    ``start`` is the file position the chunks will be written at. Large members stay their own
+    chunk (never copied); headers, small members and padding between them are joined.
+    """
+    chunks: list[bytes] = []
+    small: list[bytes] = []
+    offsets: dict[str, int] = {}
+    pos = start
+    for suffix, data in members.items():
+        small.append(ustar_header(f"{key}.{suffix}", len(data)))
+        pos += BLOCK
+        offsets[suffix] = pos
+        pad = -len(data) % BLOCK
+        if len(data) < SMALL_MEMBER:
+            small.append(data)
+        else:
+            chunks.append(b"".join(small))
+            chunks.append(data)
+            small = []
+        if pad:
+            small.append(b"\0" * pad)
+        pos += len(data) + pad
+    if small:
+        chunks.append(b"".join(small))
+    return chunks, offsets
 
 
 class _ShardFile:
@@ -93,27 +128,21 @@ class _ShardFile:
         self.pos = 0
         self.samples = 0
 
-    def _write(self, data: bytes) -> None:
-        self.f.write(data)
-        self.hasher.q.put(data)
-        self.pos += len(data)
+    def _write(self, chunks: list[bytes]) -> None:
+        for chunk in chunks:
+            self.f.write(chunk)
+            self.pos += len(chunk)
+        self.hasher.q.put(chunks)
 
-    def add_member(self, name: str, data: bytes) -> int:
-        """Append one member; returns the offset of its data."""
-        self._write(ustar_header(name, len(data)))
-        offset = self.pos
-        pad = -len(data) % BLOCK
-        # one write for small members (json, pose), two for large ones (no copy of the data)
-        if len(data) < SMALL_MEMBER:
-            self._write(data + b"\0" * pad)
-        else:
-            self._write(data)
-            if pad:
-                self._write(b"\0" * pad)
-        return offset
+    def add_sample(self, key: str, members: dict[str, bytes]) -> dict[str, int]:
+        """Append one sample's members; returns the offset of each member's data."""
+        chunks, offsets = tar_chunks(key, members, self.pos)
+        self._write(chunks)
+        self.samples += 1
+        return offsets
 
     def close(self) -> dict:
-        self._write(b"\0" * (2 * BLOCK))  # end-of-archive marker
+        self._write([b"\0" * (2 * BLOCK)])  # end-of-archive marker
         self.f.close()
         return {"name": self.path.name, "samples": self.samples, "sha256": self.hasher.hexdigest(), "bytes": self.pos}
 
@@ -143,11 +172,8 @@ class ShardWriter:
         if self._cur is None or self._cur.samples >= self.shard_size:
             self._close_current()
             self._cur = _ShardFile(self.folder / SHARD_PATTERN.format(len(self.shards)))
-        where = {}
-        for suffix, data in sample.members.items():
-            where[suffix] = (self._cur.add_member(f"{sample.key}.{suffix}", data), len(data))
-        self._cur.samples += 1
-        return where
+        offsets = self._cur.add_sample(sample.key, sample.members)
+        return {suffix: (offsets[suffix], len(data)) for suffix, data in sample.members.items()}
 
     def _close_current(self) -> None:
         if self._cur is not None:
