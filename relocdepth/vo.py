@@ -25,8 +25,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from relocdepth.errors import UserError
 from relocdepth.metrics import chordal_mean_rotation, rotation_angle_deg, thumbnail
-from relocdepth.twoview import BOOTSTRAP_MIN_PARALLAX_PX, bootstrap_pair
+from relocdepth.twoview import (
+    BOOTSTRAP_MIN_PARALLAX_PX,
+    as_grey,
+    bootstrap_pair,
+    relative_pose_essential,
+)
+
+LINK_MATCHERS = ("sift", "klt")
 
 DepthSource = Callable[[int], np.ndarray]
 
@@ -41,6 +49,12 @@ class VOConfig:
     # translation's motion, and their translations come out short.
     keyframe_baseline_px: float = 1.0
     links_per_frame: int = 3  # reference frames retrieved per query frame (thumbnail similarity)
+    # How a link's pair is matched: "sift" (descriptors, for the wide baselines between sequences:
+    # on the demo scene the nearest frames of two paths are 25-40 cm and 15-35 deg apart, which KLT
+    # does not track) or "klt" (the bootstrap's own pairs).
+    link_matcher: str = "sift"
+    sift_ratio: float = 0.8  # Lowe's ratio test
+    reprojection_px: float = 2.0  # a triangulated match farther than this from either image is dropped
     query_every: int = 2  # query every Nth frame of the registered sequence
     inlier_deg: float = 5.0  # a link whose rotation is this far from the links' medoid is dropped
 
@@ -117,6 +131,54 @@ def pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np
     return PairPose(T, True, True, baseline_px)
 
 
+def sift_matches(image_a: np.ndarray, image_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT matches ``(N, 2), (N, 2)`` (x, y pixels in a and in b) that pass the ratio test."""
+    import cv2
+
+    sift = cv2.SIFT_create()
+    ka, da = sift.detectAndCompute(as_grey(image_a), None)
+    kb, db = sift.detectAndCompute(as_grey(image_b), None)
+    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    good = [m[0] for m in cv2.BFMatcher().knnMatch(da, db, k=2)
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+    pa = np.float32([ka[m.queryIdx].pt for m in good]).reshape(-1, 2)
+    pb = np.float32([kb[m.trainIdx].pt for m in good]).reshape(-1, 2)
+    return pa, pb
+
+
+def wide_pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+                   depth_a: np.ndarray, cfg: VOConfig = VOConfig()) -> PairPose:
+    """:func:`pair_pose` for views far apart: SIFT matches, the essential matrix of the normalised
+    matches, the matches triangulated (kept within ``cfg.reprojection_px`` in both images, in
+    front of both cameras), the translation's length from ``depth_a`` at them."""
+    import cv2
+
+    pa, pb = sift_matches(image_a, image_b, cfg.sift_ratio)
+    Ka, Kb = np.asarray(K_a, np.float64), np.asarray(K_b, np.float64)
+    na = cv2.undistortPoints(pa.reshape(-1, 1, 2), Ka, None).reshape(-1, 2)
+    nb = cv2.undistortPoints(pb.reshape(-1, 1, 2), Kb, None).reshape(-1, 2)
+    try:
+        rel = relative_pose_essential(na, nb, np.eye(3), cfg.reprojection_px / Ka[0, 0])
+    except UserError:
+        return PairPose(np.eye(4), False, False)
+    P_b = np.hstack((rel.R, rel.t[:, None]))
+    X = cv2.triangulatePoints(np.eye(3, 4), P_b, na.T, nb.T)
+    X = (X[:3] / X[3]).T  # (N, 3) in camera a, baselines
+    Xb = X @ rel.R.T + rel.t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err_a = np.linalg.norm(X[:, :2] / X[:, 2:] - na, axis=1) * Ka[0, 0]
+        err_b = np.linalg.norm(Xb[:, :2] / Xb[:, 2:] - nb, axis=1) * Kb[0, 0]
+    good = (X[:, 2] > 0) & (Xb[:, 2] > 0) & (err_a < cfg.reprojection_px) & (err_b < cfg.reprojection_px)
+    ratio = sample_depth(depth_a, pa[good]) / X[good, 2]
+    ratio = ratio[np.isfinite(ratio)]
+    if len(ratio) < 5:
+        return PairPose(np.eye(4), False, False)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rel.R, rel.t * float(np.median(ratio))
+    return PairPose(T, True, True, float(Ka[0, 0] / np.median(X[good, 2])))
+
+
 def chain(images: Sequence[np.ndarray], K: np.ndarray, depth: DepthSource,
           cfg: VOConfig = VOConfig()) -> Trajectory:
     """Keyframe odometry of one sequence: ``images`` in order (same camera ``K (3, 3)``),
@@ -175,9 +237,13 @@ def register(ref_images: Sequence[np.ndarray], ref_T: np.ndarray, ref_K: np.ndar
 
     Every ``cfg.query_every``-th frame b of the sequence is linked to its ``cfg.links_per_frame``
     most similar reference frames a (normalised grey thumbnails, as the evaluation's retrieval
-    reference); each link's pair pose gives ``ref_T[a] T_{b<-a}^-1 T[b]^-1``, and
+    reference); each link's pair pose (``cfg.link_matcher``: :func:`wide_pair_pose` or
+    :func:`pair_pose`) gives ``ref_T[a] T_{b<-a}^-1 T[b]^-1``, and
     :func:`robust_mean_transform` averages them.
     """
+    if cfg.link_matcher not in LINK_MATCHERS:
+        raise ValueError(f"link_matcher must be one of {LINK_MATCHERS}, not {cfg.link_matcher!r}")
+    link_pose = wide_pair_pose if cfg.link_matcher == "sift" else pair_pose
     ref_thumbs = np.stack([thumbnail(im) for im in ref_images])
     queries = list(range(0, len(images), cfg.query_every))
     sims = np.stack([thumbnail(images[b]) for b in queries]) @ ref_thumbs.T
@@ -189,7 +255,7 @@ def register(ref_images: Sequence[np.ndarray], ref_T: np.ndarray, ref_K: np.ndar
             links += 1
             if a not in depth_cache:
                 depth_cache[a] = ref_depth(a)
-            p = pair_pose(ref_images[a], images[b], ref_K, K, depth_cache[a], cfg)
+            p = link_pose(ref_images[a], images[b], ref_K, K, depth_cache[a], cfg)
             if p.ok:
                 candidates.append(ref_T[a] @ np.linalg.inv(p.T) @ np.linalg.inv(T[b]))
     if not candidates:

@@ -34,7 +34,7 @@ from relocdepth import metrics as M
 from relocdepth.camera import Intrinsics
 from relocdepth.dataset import DEPTH_SCALE, open_dataset
 from relocdepth.evaluate import fit_sim3
-from relocdepth.vo import VOConfig, chain, register
+from relocdepth.vo import LINK_MATCHERS, VOConfig, chain, register
 
 
 @dataclass
@@ -188,13 +188,15 @@ def main() -> None:
     ap.add_argument("--keyframe-baseline", type=float, default=VOConfig.keyframe_baseline_px,
                     help="px; a measured pair over this baseline becomes the next keyframe")
     ap.add_argument("--links", type=int, default=VOConfig.links_per_frame)
+    ap.add_argument("--link-matcher", choices=LINK_MATCHERS, default=VOConfig.link_matcher,
+                    help="registration links: SIFT matches (wide baselines) or the bootstrap's KLT")
     ap.add_argument("--query-every", type=int, default=VOConfig.query_every)
     ap.add_argument("--json", type=Path, help="also write the figures here")
     a = ap.parse_args()
     size = tuple(int(v) for v in a.size.lower().split("x")) if a.size else None
     seqs = [_resize(s, size) for s in load(a.data, a.frames)]
     cfg = VOConfig(min_parallax_px=a.min_parallax, keyframe_baseline_px=a.keyframe_baseline,
-                   links_per_frame=a.links, query_every=a.query_every)
+                   links_per_frame=a.links, link_matcher=a.link_matcher, query_every=a.query_every)
     print(f"{a.data}: {', '.join(f'{s.name} ({len(s.images)})' for s in seqs)} at "
           f"{seqs[0].intrinsics.width}x{seqs[0].intrinsics.height}; {cfg}")
     rows = {}
