@@ -140,8 +140,12 @@ def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: 
         sel = np.array(names) == s.name
         err = np.linalg.norm(T_al[sel, :3, 3] - T_gt[sel, :3, 3], axis=1)
         row = out["sequences"].setdefault(s.name, {})
+        # rotation drift: both trajectories start at the first frame, so no alignment is needed
+        R_gt = np.linalg.inv(s.T_gt[0])[:3, :3] @ s.T_gt[:, :3, :3]
+        drift = M.rotation_angle_deg(np.swapaxes(tr.T_wc[:, :3, :3], -1, -2) @ R_gt)
         row |= {"frames": len(s.images), "keyframes": len(tr.keyframes), "lost": len(tr.lost),
                 "alone": ate(tr.T_wc, s.T_gt),
+                "rotation_drift_deg": {"median": float(np.median(drift)), "max": float(drift.max())},
                 "joint": {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "median_m": float(np.median(err))}}
         if "registration" in row:
             T_true = np.linalg.inv(ref.T_gt[0]) @ s.T_gt[0]
@@ -153,8 +157,8 @@ def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: 
 
 def print_table(rows: dict[str, dict]) -> None:
     print("| depth | sequence | frames (keyframes, lost) | ATE alone RMSE / median (m) | scale alone "
-          "| ATE joint RMSE / median (m) | registration: inliers / links, error (deg / m) |")
-    print("|---|---|---|---|---|---|---|")
+          "| rotation drift median / max (deg) | ATE joint RMSE / median (m) | registration: inliers / links, error (deg / m) |")
+    print("|---|---|---|---|---|---|---|---|")
     for label, r in rows.items():
         for name, q in r["sequences"].items():
             reg = q.get("registration")
@@ -162,6 +166,7 @@ def print_table(rows: dict[str, dict]) -> None:
                      if reg else "(reference)")
             print(f"| {label} | {name} | {q['frames']} ({q['keyframes']}, {q['lost']}) | "
                   f"{q['alone']['rmse_m']:.3f} / {q['alone']['median_m']:.3f} | {q['alone']['scale']:.3f} | "
+                  f"{q['rotation_drift_deg']['median']:.2f} / {q['rotation_drift_deg']['max']:.2f} | "
                   f"{q['joint']['rmse_m']:.3f} / {q['joint']['median_m']:.3f} | {reg_s} |")
     print()
     print("| depth | ATE joint RMSE / median (m) | scale | rel. pose k apart t (m) / r (deg) "
