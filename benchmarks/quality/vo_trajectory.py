@@ -36,6 +36,8 @@ from relocdepth.dataset import DEPTH_SCALE, open_dataset
 from relocdepth.evaluate import fit_sim3
 from relocdepth.vo import LINK_MATCHERS, VOConfig, chain, register
 
+GAP_DEG = 15.0  # "looks the same way" for the gap between two paths
+
 
 @dataclass
 class Sequence:
@@ -152,17 +154,25 @@ def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: 
             T_reg = row["registration"].pop("T")
             row["registration"]["r_err_deg"] = float(M.rotation_angle_deg(T_reg[:3, :3].T @ T_true[:3, :3]))
             row["registration"]["t_err_m"] = float(np.linalg.norm(s_ * T_reg[:3, 3] - T_true[:3, 3]))
+            # how far apart the two paths are: per frame, the nearest reference frame that looks
+            # within GAP_DEG the same way (ground truth; what a link's pair has to bridge)
+            dist = np.linalg.norm(s.T_gt[:, None, :3, 3] - ref.T_gt[None, :, :3, 3], axis=-1)
+            ang = M.rotation_angle_deg(np.einsum("bji,ajk->baik", s.T_gt[:, :3, :3], ref.T_gt[:, :3, :3]))
+            gap = np.where(ang < GAP_DEG, dist, np.inf).min(axis=1)
+            row["registration"]["path_gap_m"] = float(np.median(gap))
     return out
 
 
 def print_table(rows: dict[str, dict]) -> None:
     print("| depth | sequence | frames (keyframes, lost) | ATE alone RMSE / median (m) | scale alone "
-          "| rotation drift median / max (deg) | ATE joint RMSE / median (m) | registration: inliers / links, error (deg / m) |")
+          "| rotation drift median / max (deg) | ATE joint RMSE / median (m) "
+          f"| registration: inliers / links, error (deg / m), path gap (m, < {GAP_DEG:g} deg) |")
     print("|---|---|---|---|---|---|---|---|")
     for label, r in rows.items():
         for name, q in r["sequences"].items():
             reg = q.get("registration")
-            reg_s = (f"{reg['inliers']} / {reg['links']}, {reg['r_err_deg']:.2f} / {reg['t_err_m']:.3f}"
+            reg_s = (f"{reg['inliers']} / {reg['links']}, {reg['r_err_deg']:.2f} / {reg['t_err_m']:.3f}, "
+                     f"{reg['path_gap_m']:.3f}"
                      if reg else "(reference)")
             print(f"| {label} | {name} | {q['frames']} ({q['keyframes']}, {q['lost']}) | "
                   f"{q['alone']['rmse_m']:.3f} / {q['alone']['median_m']:.3f} | {q['alone']['scale']:.3f} | "
