@@ -54,7 +54,9 @@ class VOConfig:
     # does not track) or "klt" (the bootstrap's own pairs).
     link_matcher: str = "sift"
     sift_ratio: float = 0.8  # Lowe's ratio test
-    reprojection_px: float = 2.0  # a triangulated match farther than this from either image is dropped
+    # SIFT links: the essential matrix's RANSAC threshold, and a triangulated match farther than
+    # this from its pixel in either image is dropped (SIFT positions are good to ~1 px at 128x96)
+    reprojection_px: float = 2.0
     query_every: int = 2  # query every Nth frame of the registered sequence
     inlier_deg: float = 5.0  # a link whose rotation is this far from the links' medoid is dropped
 
@@ -155,6 +157,8 @@ def wide_pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_
     import cv2
 
     pa, pb = sift_matches(image_a, image_b, cfg.sift_ratio)
+    if len(pa) < 5:  # the essential matrix needs five
+        return PairPose(np.eye(4), False, False)
     Ka, Kb = np.asarray(K_a, np.float64), np.asarray(K_b, np.float64)
     na = cv2.undistortPoints(pa.reshape(-1, 1, 2), Ka, None).reshape(-1, 2)
     nb = cv2.undistortPoints(pb.reshape(-1, 1, 2), Kb, None).reshape(-1, 2)
@@ -164,9 +168,9 @@ def wide_pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_
         return PairPose(np.eye(4), False, False)
     P_b = np.hstack((rel.R, rel.t[:, None]))
     X = cv2.triangulatePoints(np.eye(3, 4), P_b, na.T, nb.T)
-    X = (X[:3] / X[3]).T  # (N, 3) in camera a, baselines
-    Xb = X @ rel.R.T + rel.t
     with np.errstate(divide="ignore", invalid="ignore"):
+        X = (X[:3] / X[3]).T  # (N, 3) in camera a, baselines
+        Xb = X @ rel.R.T + rel.t
         err_a = np.linalg.norm(X[:, :2] / X[:, 2:] - na, axis=1) * Ka[0, 0]
         err_b = np.linalg.norm(Xb[:, :2] / Xb[:, 2:] - nb, axis=1) * Kb[0, 0]
     good = (X[:, 2] > 0) & (Xb[:, 2] > 0) & (err_a < cfg.reprojection_px) & (err_b < cfg.reprojection_px)

@@ -9,7 +9,14 @@ import pytest
 from relocdepth.geometry import umeyama
 from relocdepth.metrics import apply_sim3, rotation_angle_deg
 from relocdepth.synth import SEVEN_SCENES_INTRINSICS, SynthConfig, build_scene, camera_paths, render
-from relocdepth.vo import chain, register, robust_mean_transform, sample_depth
+from relocdepth.vo import (
+    chain,
+    pair_pose,
+    register,
+    robust_mean_transform,
+    sample_depth,
+    wide_pair_pose,
+)
 
 INTR = SEVEN_SCENES_INTRINSICS.scaled(128, 96)  # the demo scene's camera
 STRIDE = 2  # every other frame of the demo path: ~1.5 cm and ~1 deg apart
@@ -102,3 +109,31 @@ def test_register_recovers_the_rig_transform(rendered: dict) -> None:
     assert reg.inliers >= 3
     assert rotation_angle_deg(reg.T[:3, :3].T @ truth[:3, :3]) < 2.0
     assert np.linalg.norm(reg.T[:3, 3] - truth[:3, 3]) < 0.03, (reg.T[:3, 3], truth[:3, 3])
+
+
+@pytest.mark.parametrize("frame,move,turn", [
+    (0, (0.25, 0.05, 0.0), (0.0, -15.0, 0.0)),  # 25 cm sideways, turned back toward the scene
+    (40, None, None),  # 40 frames along the demo path: 11 cm and 14 deg, beyond KLT's reach
+])
+def test_wide_pair_pose_is_metric_across_wide_baselines(frame: int, move: tuple | None,
+                                                        turn: tuple | None) -> None:
+    cfg = SynthConfig(seed=0, frames=frame + 1, width=INTR.width, height=INTR.height)
+    scene = build_scene(cfg.seed, cfg)
+    path = camera_paths(cfg)["seq-01"]
+    T_a = path[0]
+    T_b = path[frame] if move is None else T_a @ _rigid(turn, move)  # moved in camera a's axes
+    (img_a, depth_a), (img_b, _) = render(scene, T_a, INTR), render(scene, T_b, INTR)
+    truth = np.linalg.inv(T_b) @ T_a  # T_{b<-a}, metres
+    assert rotation_angle_deg(truth[:3, :3]) > 10 and np.linalg.norm(truth[:3, 3]) > 0.1
+    p = wide_pair_pose(img_a, img_b, INTR.K(), INTR.K(), depth_a)
+    assert p.ok and p.measured
+    assert rotation_angle_deg(p.T[:3, :3].T @ truth[:3, :3]) < 1.0
+    assert np.linalg.norm(p.T[:3, 3] - truth[:3, 3]) < 0.03, (p.T[:3, 3], truth[:3, 3])
+
+
+def test_pairs_without_texture_fail() -> None:
+    blank = np.full((INTR.height, INTR.width, 3), 128, np.uint8)
+    depth = np.ones((INTR.height, INTR.width), np.float32)
+    for pose in (pair_pose, wide_pair_pose):
+        p = pose(blank, blank, INTR.K(), INTR.K(), depth)
+        assert not p.ok and not p.measured and np.allclose(p.T, np.eye(4))
