@@ -5,7 +5,7 @@ Visual odometry by keyframes: each frame's pose relative to the current keyframe
 parallax keeps its rotation and a zero translation), the unit translation scaled by a depth map
 of the keyframe (the median, over the pair's triangulated points, of depth at the point over the
 point's depth in baselines, as :func:`relocdepth.method.two_view_poses` does in training). The
-first pair with a measured translation becomes the next keyframe. Every translation is thus in the
+first pair with a measured translation (over a minimum baseline) becomes the next keyframe. Every translation is thus in the
 depth's units (metres for ground-truth depth, network units for a trained depth network), so the
 chain needs no scale propagation.
 
