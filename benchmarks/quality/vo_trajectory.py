@@ -1,0 +1,228 @@
+"""How good is a trajectory built from the bootstrap's own geometry (no ground truth)?
+
+Per training sequence, keyframe visual odometry from the essential-matrix bootstrap
+(`relocdepth.vo.chain`: KLT + essential matrix per pair, each translation's length from a depth
+map of the keyframe), then every other training sequence registered into the first one's world
+(`relocdepth.vo.register`: thumbnail retrieval links, robust average). Depth comes from a trained
+checkpoint (its depth network only) and, as the upper bound, from ground truth. Scored against the
+ground-truth poses after a Sim(3) alignment (Umeyama): ATE (RMSE and median) per sequence (each
+aligned alone: drift) and jointly (one alignment for all: drift plus registration), the relative
+pose error of frames k apart vs the identity's, the fitted scale, the registration's own error,
+and the time per frame.
+
+    python benchmarks/quality/vo_trajectory.py /tmp/q1/data/shards \
+        --checkpoint /tmp/s3/w10/checkpoints/ckpt-00000302.pt
+    python benchmarks/quality/vo_trajectory.py ../shared/data/hololens-office --size 192x128
+
+Data: shards from `reloc ingest` (the training split, every sequence), or one walk-through folder
+(images/, depth/, poses.txt, K.txt, e.g. shared/data/hololens-office: its first --frames frames,
+the quality rows' training part).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from relocdepth import metrics as M
+from relocdepth.camera import Intrinsics
+from relocdepth.dataset import DEPTH_SCALE, open_dataset
+from relocdepth.evaluate import fit_sim3
+from relocdepth.vo import LINK_MATCHERS, VOConfig, chain, register
+
+GAP_DEG = 15.0  # "looks the same way" for the gap between two paths
+
+
+@dataclass
+class Sequence:
+    name: str
+    images: list[np.ndarray]  # RGB uint8 at the tracking size
+    intrinsics: Intrinsics  # at the tracking size
+    T_gt: np.ndarray  # (N, 4, 4)
+    depth_gt: list[np.ndarray]  # metres at the tracking size, 0 = invalid
+
+
+def _resize(seq: Sequence, size: tuple[int, int] | None) -> Sequence:
+    if size is None or size == (seq.intrinsics.width, seq.intrinsics.height):
+        return seq
+    w, h = size
+    images = [cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in seq.images]
+    depth = [cv2.resize(d, (w, h), interpolation=cv2.INTER_NEAREST) for d in seq.depth_gt]
+    return Sequence(seq.name, images, seq.intrinsics.scaled(w, h), seq.T_gt, depth)
+
+
+def load(path: Path, frames: int) -> list[Sequence]:
+    """The training sequences at ``path`` (shards, or a walk-through folder's first ``frames``)."""
+    if (path / "poses.txt").is_file():
+        K = np.loadtxt(path / "K.txt").reshape(3, 3)
+        T = np.loadtxt(path / "poses.txt").reshape(-1, 4, 4)[:frames]
+        imgs = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)
+                for p in sorted((path / "images").glob("*.png"))[:frames]]
+        depth = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float32) / DEPTH_SCALE
+                 for p in sorted((path / "depth").glob("*.png"))[:frames]]
+        h, w = imgs[0].shape[:2]
+        intr = Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h)
+        return [Sequence(path.name, imgs, intr, T, depth)]
+    ds = open_dataset(path)
+    out = []
+    for name in ds.sequences():
+        recs = sorted((r for r in ds.frames("train") if r.sequence == name), key=lambda r: r.frame)
+        if recs:
+            out.append(Sequence(name, [ds.read_image(r) for r in recs], recs[0].intrinsics,
+                                np.stack([ds.read_pose(r) for r in recs]),
+                                [ds.read_depth(r) for r in recs]))
+    return out
+
+
+def network_depth(checkpoint: str, seqs: list[Sequence]) -> tuple[list[list[np.ndarray]], float]:
+    """Depth of every frame from the checkpoint's depth network, at each sequence's size; and the
+    seconds per frame it took."""
+    from relocdepth.predictor import Predictor
+
+    pred = Predictor.from_checkpoint(checkpoint)
+    out, n, t0 = [], 0, time.process_time()
+    for s in seqs:
+        w, h = s.intrinsics.width, s.intrinsics.height
+        maps = []
+        for i in range(0, len(s.images), 16):
+            batch = s.images[i:i + 16]
+            d = pred.predict(batch, [s.intrinsics] * len(batch), with_depth=True).depth
+            maps += [cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR) for x in d]
+        out.append(maps)
+        n += len(s.images)
+    return out, (time.process_time() - t0) / max(n, 1)
+
+
+def ate(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
+    """Sim(3)-aligned camera-centre errors (m): RMSE, median; and the fitted scale."""
+    s, R, t = fit_sim3(T_est, T_gt)
+    err = np.linalg.norm(M.apply_sim3(s, R, t, T_est)[:, :3, 3] - T_gt[:, :3, 3], axis=1)
+    return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "median_m": float(np.median(err)),
+            "scale": s}
+
+
+def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: int) -> dict:
+    """Odometry per sequence, registration into the first, and the scores."""
+    trajs, t_vo, n = [], 0.0, 0
+    for s, d in zip(seqs, depths):
+        t0 = time.process_time()
+        trajs.append(chain(s.images, s.intrinsics.K(), d.__getitem__, cfg))
+        t_vo += time.process_time() - t0
+        n += len(s.images)
+    out: dict = {"sequences": {}, "vo_s_per_frame": t_vo / n}
+    ref, ref_tr = seqs[0], trajs[0]
+    world = [ref_tr.T_wc]
+    t_reg, links = 0.0, 0
+    for s, d, tr in zip(seqs[1:], depths[1:], trajs[1:]):
+        t0 = time.process_time()
+        reg = register(ref.images, ref_tr.T_wc, ref.intrinsics.K(), depths[0].__getitem__,
+                       s.images, tr.T_wc, s.intrinsics.K(), cfg)
+        t_reg += time.process_time() - t0
+        links += reg.links
+        world.append(reg.T @ tr.T_wc)
+        out["sequences"][s.name] = {"registration": {"links": reg.links, "used": reg.used,
+                                                     "inliers": reg.inliers, "T": reg.T}}
+    if links:
+        out["registration_s_per_link"] = t_reg / links
+    T_est, T_gt = np.concatenate(world), np.concatenate([s.T_gt for s in seqs])
+    names = [s.name for s in seqs for _ in s.images]
+    joint = ate(T_est, T_gt)
+    s_, R_, t_ = fit_sim3(T_est, T_gt)
+    T_al = M.apply_sim3(s_, R_, t_, T_est)
+    out["joint"] = joint | {"relative": M.relative_pose_errors(T_al, T_gt, names, k)}
+    # The registration's own error: the true reference-from-sequence transform vs the estimate
+    # (its translation scaled to metres by the joint scale).
+    for s, tr, T_w in zip(seqs, trajs, world):
+        sel = np.array(names) == s.name
+        err = np.linalg.norm(T_al[sel, :3, 3] - T_gt[sel, :3, 3], axis=1)
+        row = out["sequences"].setdefault(s.name, {})
+        # rotation drift: both trajectories start at the first frame, so no alignment is needed
+        R_gt = np.linalg.inv(s.T_gt[0])[:3, :3] @ s.T_gt[:, :3, :3]
+        drift = M.rotation_angle_deg(np.swapaxes(tr.T_wc[:, :3, :3], -1, -2) @ R_gt)
+        row |= {"frames": len(s.images), "keyframes": len(tr.keyframes), "lost": len(tr.lost),
+                "alone": ate(tr.T_wc, s.T_gt),
+                "rotation_drift_deg": {"median": float(np.median(drift)), "max": float(drift.max())},
+                "joint": {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "median_m": float(np.median(err))}}
+        if "registration" in row:
+            T_true = np.linalg.inv(ref.T_gt[0]) @ s.T_gt[0]
+            T_reg = row["registration"].pop("T")
+            row["registration"]["r_err_deg"] = float(M.rotation_angle_deg(T_reg[:3, :3].T @ T_true[:3, :3]))
+            row["registration"]["t_err_m"] = float(np.linalg.norm(s_ * T_reg[:3, 3] - T_true[:3, 3]))
+            # how far apart the two paths are: per frame, the nearest reference frame that looks
+            # within GAP_DEG the same way (ground truth; what a link's pair has to bridge)
+            dist = np.linalg.norm(s.T_gt[:, None, :3, 3] - ref.T_gt[None, :, :3, 3], axis=-1)
+            ang = M.rotation_angle_deg(np.einsum("bji,ajk->baik", s.T_gt[:, :3, :3], ref.T_gt[:, :3, :3]))
+            gap = np.where(ang < GAP_DEG, dist, np.inf).min(axis=1)
+            row["registration"]["path_gap_m"] = float(np.median(gap))
+    return out
+
+
+def print_table(rows: dict[str, dict]) -> None:
+    print("| depth | sequence | frames (keyframes, lost) | ATE alone RMSE / median (m) | scale alone "
+          "| rotation drift median / max (deg) | ATE joint RMSE / median (m) "
+          f"| registration: inliers / links, error (deg / m), path gap (m, < {GAP_DEG:g} deg) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, r in rows.items():
+        for name, q in r["sequences"].items():
+            reg = q.get("registration")
+            reg_s = (f"{reg['inliers']} / {reg['links']}, {reg['r_err_deg']:.2f} / {reg['t_err_m']:.3f}, "
+                     f"{reg['path_gap_m']:.3f}"
+                     if reg else "(reference)")
+            print(f"| {label} | {name} | {q['frames']} ({q['keyframes']}, {q['lost']}) | "
+                  f"{q['alone']['rmse_m']:.3f} / {q['alone']['median_m']:.3f} | {q['alone']['scale']:.3f} | "
+                  f"{q['rotation_drift_deg']['median']:.2f} / {q['rotation_drift_deg']['max']:.2f} | "
+                  f"{q['joint']['rmse_m']:.3f} / {q['joint']['median_m']:.3f} | {reg_s} |")
+    print()
+    print("| depth | ATE joint RMSE / median (m) | scale | rel. pose k apart t (m) / r (deg) "
+          "| identity t / r | VO s/frame | registration s/link | depth net s/frame |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, r in rows.items():
+        j, rel = r["joint"], r["joint"]["relative"]
+        print(f"| {label} | {j['rmse_m']:.3f} / {j['median_m']:.3f} | {j['scale']:.3f} | "
+              f"{rel['median_t_m']:.4f} / {rel['median_r_deg']:.2f} (k={rel['k']}) | "
+              f"{rel['identity_median_t_m']:.4f} / {rel['identity_median_r_deg']:.2f} | "
+              f"{r['vo_s_per_frame']:.4f} | {r.get('registration_s_per_link', float('nan')):.4f} | "
+              f"{r.get('depth_s_per_frame', float('nan')):.4f} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data", type=Path, help="shards from `reloc ingest`, or a walk-through folder")
+    ap.add_argument("--checkpoint", help="a run or checkpoint file: depth from its depth network")
+    ap.add_argument("--size", help="track at WxH (images and depth resized; K follows)")
+    ap.add_argument("--frames", type=int, default=90, help="walk-through: its first N frames")
+    ap.add_argument("--k", type=int, default=5, help="relative pose error between frames k apart")
+    ap.add_argument("--min-parallax", type=float, default=VOConfig.min_parallax_px,
+                    help="px; pairs below are rotation only (the bootstrap's threshold)")
+    ap.add_argument("--keyframe-baseline", type=float, default=VOConfig.keyframe_baseline_px,
+                    help="px; a measured pair over this baseline becomes the next keyframe")
+    ap.add_argument("--links", type=int, default=VOConfig.links_per_frame)
+    ap.add_argument("--link-matcher", choices=LINK_MATCHERS, default=VOConfig.link_matcher,
+                    help="registration links: SIFT matches (wide baselines) or the bootstrap's KLT")
+    ap.add_argument("--query-every", type=int, default=VOConfig.query_every)
+    ap.add_argument("--json", type=Path, help="also write the figures here")
+    a = ap.parse_args()
+    size = tuple(int(v) for v in a.size.lower().split("x")) if a.size else None
+    seqs = [_resize(s, size) for s in load(a.data, a.frames)]
+    cfg = VOConfig(min_parallax_px=a.min_parallax, keyframe_baseline_px=a.keyframe_baseline,
+                   links_per_frame=a.links, link_matcher=a.link_matcher, query_every=a.query_every)
+    print(f"{a.data}: {', '.join(f'{s.name} ({len(s.images)})' for s in seqs)} at "
+          f"{seqs[0].intrinsics.width}x{seqs[0].intrinsics.height}; {cfg}")
+    rows = {}
+    if a.checkpoint:
+        depths, per_frame = network_depth(a.checkpoint, seqs)
+        rows["network"] = run(seqs, depths, cfg, a.k) | {"depth_s_per_frame": per_frame}
+    rows["ground truth"] = run(seqs, [s.depth_gt for s in seqs], cfg, a.k)
+    print_table(rows)
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,268 @@
+"""A camera trajectory from the essential-matrix bootstrap's own geometry (no ground truth).
+
+Visual odometry by keyframes: each frame's pose relative to the current keyframe comes from
+:func:`relocdepth.twoview.bootstrap_pair` (KLT tracks + essential matrix; a pair with too little
+parallax keeps its rotation and a zero translation), the unit translation scaled by a depth map
+of the keyframe (the median, over the pair's triangulated points, of depth at the point over the
+point's depth in baselines, as :func:`relocdepth.method.two_view_poses` does in training). The
+first pair with a measured translation (over a minimum baseline) becomes the next keyframe. Every translation is thus in the
+depth's units (metres for ground-truth depth, network units for a trained depth network), so the
+chain needs no scale propagation.
+
+Several sequences of one place are brought into one world by :func:`register`: frames of a
+sequence are linked to their most similar frames of a reference sequence (thumbnail retrieval),
+each link gives one reference-world-from-sequence-world transform, and a robust average of the
+links is the answer.
+
+Conventions (DESIGN.md): poses are world-from-camera ``T_wc`` (4, 4), OpenCV axes; a sequence's
+world is its first frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from relocdepth.errors import UserError
+from relocdepth.metrics import chordal_mean_rotation, rotation_angle_deg, thumbnail
+from relocdepth.twoview import (
+    BOOTSTRAP_MIN_PARALLAX_PX,
+    as_grey,
+    bootstrap_pair,
+    relative_pose_essential,
+)
+
+LINK_MATCHERS = ("sift", "klt")
+
+DepthSource = Callable[[int], np.ndarray]
+
+
+@dataclass(frozen=True)
+class VOConfig:
+    """Keyframe odometry and cross-sequence registration."""
+
+    min_parallax_px: float = BOOTSTRAP_MIN_PARALLAX_PX  # below: rotation only (the bootstrap's)
+    # A measured pair becomes the next keyframe from this baseline (px: the baseline seen at the
+    # median depth of its points). Shorter baselines let the rotation absorb part of the
+    # translation's motion, and their translations come out short.
+    keyframe_baseline_px: float = 1.0
+    links_per_frame: int = 3  # reference frames retrieved per query frame (thumbnail similarity)
+    # How a link's pair is matched: "sift" (descriptors, for the wide baselines between sequences:
+    # on the demo scene the nearest frames of two paths are 25-40 cm and 15-35 deg apart, which KLT
+    # does not track) or "klt" (the bootstrap's own pairs).
+    link_matcher: str = "sift"
+    sift_ratio: float = 0.8  # Lowe's ratio test
+    # SIFT links: the essential matrix's RANSAC threshold, and a triangulated match farther than
+    # this from its pixel in either image is dropped (SIFT positions are good to ~1 px at 128x96)
+    reprojection_px: float = 2.0
+    query_every: int = 2  # query every Nth frame of the registered sequence
+    inlier_deg: float = 5.0  # a link whose rotation is this far from the links' medoid is dropped
+
+
+@dataclass
+class PairPose:
+    """``T (4, 4)`` = ``T_{b<-a}`` with its translation in depth units; whether the pair has a
+    measured translation (enough parallax and depth at its points); whether the pair worked; the
+    baseline in pixels of image a (focal length / median depth of the points in baselines; 0
+    when not measured)."""
+
+    T: np.ndarray
+    measured: bool
+    ok: bool
+    baseline_px: float = 0.0
+
+
+@dataclass
+class Trajectory:
+    """Poses ``T_wc (N, 4, 4)`` (world = first frame), the keyframe indices, the frames whose
+    pose could not be measured (they repeat the previous pose)."""
+
+    T_wc: np.ndarray
+    keyframes: list[int]
+    lost: list[int]
+
+
+@dataclass
+class Registration:
+    """``T (4, 4)``: reference world from the sequence's world; ``links`` tried, ``used`` (had a
+    pose), ``inliers`` (agreed with the average)."""
+
+    T: np.ndarray
+    links: int
+    used: int
+    inliers: int
+
+
+def sample_depth(depth: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bilinear depth at pixels ``xy (N, 2)`` (x, y; pixel centres at integers) of ``depth (H, W)``;
+    NaN outside the image or where a neighbour is invalid (<= 0 or not finite)."""
+    depth = np.asarray(depth, np.float64)
+    H, W = depth.shape
+    x, y = np.asarray(xy, np.float64).T
+    out = np.full(len(x), np.nan)
+    inside = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (y >= 0) & (x <= W - 1) & (y <= H - 1)
+    x0 = np.clip(np.floor(x[inside]).astype(int), 0, max(W - 2, 0))
+    y0 = np.clip(np.floor(y[inside]).astype(int), 0, max(H - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    fx, fy = x[inside] - x0, y[inside] - y0
+    d = np.stack([depth[y0, x0], depth[y0, x1], depth[y1, x0], depth[y1, x1]])
+    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
+    valid = np.all(np.isfinite(d) & (d > 0), axis=0)
+    out[np.flatnonzero(inside)[valid]] = np.sum(d * w, axis=0)[valid]
+    return out
+
+
+def pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+              depth_a: np.ndarray, cfg: VOConfig = VOConfig()) -> PairPose:
+    """``T_{b<-a}`` of two images with the translation's length from ``depth_a (H, W)`` (image a's
+    depth at its pixels, any units; <= 0 = unknown)."""
+    T, points, ok = bootstrap_pair(image_a, image_b, np.asarray(K_a), np.asarray(K_b),
+                                   min_parallax_px=cfg.min_parallax_px)
+    T = T.astype(np.float64)
+    has = np.isfinite(points[:, 2])
+    if not ok or not has.any():
+        return PairPose(T, False, bool(ok))
+    ratio = sample_depth(depth_a, points[has, :2]) / points[has, 2]
+    ratio = ratio[np.isfinite(ratio)]
+    if len(ratio) == 0:  # a translation of unknown length is no pose
+        return PairPose(np.eye(4), False, False)
+    T[:3, 3] *= float(np.median(ratio))
+    baseline_px = float(K_a[0, 0] / np.median(points[has, 2]))
+    return PairPose(T, True, True, baseline_px)
+
+
+def sift_matches(image_a: np.ndarray, image_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT matches ``(N, 2), (N, 2)`` (x, y pixels in a and in b) that pass the ratio test."""
+    import cv2
+
+    sift = cv2.SIFT_create()
+    ka, da = sift.detectAndCompute(as_grey(image_a), None)
+    kb, db = sift.detectAndCompute(as_grey(image_b), None)
+    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    good = [m[0] for m in cv2.BFMatcher().knnMatch(da, db, k=2)
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+    pa = np.float32([ka[m.queryIdx].pt for m in good]).reshape(-1, 2)
+    pb = np.float32([kb[m.trainIdx].pt for m in good]).reshape(-1, 2)
+    return pa, pb
+
+
+def wide_pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+                   depth_a: np.ndarray, cfg: VOConfig = VOConfig()) -> PairPose:
+    """:func:`pair_pose` for views far apart: SIFT matches, the essential matrix of the normalised
+    matches, the matches triangulated (kept within ``cfg.reprojection_px`` in both images, in
+    front of both cameras), the translation's length from ``depth_a`` at them."""
+    import cv2
+
+    pa, pb = sift_matches(image_a, image_b, cfg.sift_ratio)
+    if len(pa) < 5:  # the essential matrix needs five
+        return PairPose(np.eye(4), False, False)
+    Ka, Kb = np.asarray(K_a, np.float64), np.asarray(K_b, np.float64)
+    na = cv2.undistortPoints(pa.reshape(-1, 1, 2), Ka, None).reshape(-1, 2)
+    nb = cv2.undistortPoints(pb.reshape(-1, 1, 2), Kb, None).reshape(-1, 2)
+    try:
+        rel = relative_pose_essential(na, nb, np.eye(3), cfg.reprojection_px / Ka[0, 0])
+    except UserError:
+        return PairPose(np.eye(4), False, False)
+    P_b = np.hstack((rel.R, rel.t[:, None]))
+    X = cv2.triangulatePoints(np.eye(3, 4), P_b, na.T, nb.T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = (X[:3] / X[3]).T  # (N, 3) in camera a, baselines
+        Xb = X @ rel.R.T + rel.t
+        err_a = np.linalg.norm(X[:, :2] / X[:, 2:] - na, axis=1) * Ka[0, 0]
+        err_b = np.linalg.norm(Xb[:, :2] / Xb[:, 2:] - nb, axis=1) * Kb[0, 0]
+    good = (X[:, 2] > 0) & (Xb[:, 2] > 0) & (err_a < cfg.reprojection_px) & (err_b < cfg.reprojection_px)
+    ratio = sample_depth(depth_a, pa[good]) / X[good, 2]
+    ratio = ratio[np.isfinite(ratio)]
+    if len(ratio) < 5:
+        return PairPose(np.eye(4), False, False)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rel.R, rel.t * float(np.median(ratio))
+    return PairPose(T, True, True, float(Ka[0, 0] / np.median(X[good, 2])))
+
+
+def chain(images: Sequence[np.ndarray], K: np.ndarray, depth: DepthSource,
+          cfg: VOConfig = VOConfig()) -> Trajectory:
+    """Keyframe odometry of one sequence: ``images`` in order (same camera ``K (3, 3)``),
+    ``depth(i)`` the depth map of frame i (asked for keyframes only).
+
+    Frame j's pose comes from its pair with the current keyframe; the first frame whose pair has a
+    measured translation over a baseline of ``cfg.keyframe_baseline_px`` becomes the next keyframe. When a pair fails, the frame before it becomes
+    the keyframe and the pair is tried once more; when that fails too, the frame keeps the previous
+    pose (listed in ``lost``) and becomes the keyframe itself.
+    """
+    n = len(images)
+    T_wc = np.repeat(np.eye(4)[None], n, axis=0)
+    kf, keyframes, lost = 0, [0], []
+    kf_depth = depth(0) if n else None
+    for j in range(1, n):
+        p = pair_pose(images[kf], images[j], K, K, kf_depth, cfg)
+        if not p.ok and j - 1 > kf:
+            kf = j - 1
+            keyframes.append(kf)
+            kf_depth = depth(kf)
+            p = pair_pose(images[kf], images[j], K, K, kf_depth, cfg)
+        if not p.ok:
+            T_wc[j] = T_wc[j - 1]
+            lost.append(j)
+        else:
+            T_wc[j] = T_wc[kf] @ np.linalg.inv(p.T)
+        if (p.measured and p.baseline_px >= cfg.keyframe_baseline_px) or not p.ok:
+            kf = j
+            keyframes.append(kf)
+            kf_depth = depth(kf)
+    return Trajectory(T_wc, keyframes, lost)
+
+
+def robust_mean_transform(T: np.ndarray, inlier_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """A robust average of rigid transforms ``T (M, 4, 4)``: the rotation medoid (least summed
+    angle to the others) picks the inliers (within ``inlier_deg``), whose chordal mean rotation and
+    per-axis median translation are the answer. Returns ``(T (4, 4), inlier mask (M,))``."""
+    T = np.asarray(T, np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or len(T) == 0:
+        raise ValueError(f"expected (M, 4, 4) transforms with M >= 1, got {T.shape}")
+    R = T[:, :3, :3]
+    angles = rotation_angle_deg(np.einsum("aji,bjk->abik", R, R))  # (M, M) pairwise
+    medoid = int(np.argmin(angles.sum(axis=1)))
+    inl = angles[medoid] <= inlier_deg
+    out = np.eye(4)
+    out[:3, :3] = chordal_mean_rotation(R[inl])
+    out[:3, 3] = np.median(T[inl, :3, 3], axis=0)
+    return out, inl
+
+
+def register(ref_images: Sequence[np.ndarray], ref_T: np.ndarray, ref_K: np.ndarray,
+             ref_depth: DepthSource, images: Sequence[np.ndarray], T: np.ndarray, K: np.ndarray,
+             cfg: VOConfig = VOConfig()) -> Registration:
+    """The reference world from a sequence's world, both trajectories from :func:`chain` with
+    depth in the same units.
+
+    Every ``cfg.query_every``-th frame b of the sequence is linked to its ``cfg.links_per_frame``
+    most similar reference frames a (normalised grey thumbnails, as the evaluation's retrieval
+    reference); each link's pair pose (``cfg.link_matcher``: :func:`wide_pair_pose` or
+    :func:`pair_pose`) gives ``ref_T[a] T_{b<-a}^-1 T[b]^-1``, and
+    :func:`robust_mean_transform` averages them.
+    """
+    if cfg.link_matcher not in LINK_MATCHERS:
+        raise ValueError(f"link_matcher must be one of {LINK_MATCHERS}, not {cfg.link_matcher!r}")
+    link_pose = wide_pair_pose if cfg.link_matcher == "sift" else pair_pose
+    ref_thumbs = np.stack([thumbnail(im) for im in ref_images])
+    queries = list(range(0, len(images), cfg.query_every))
+    sims = np.stack([thumbnail(images[b]) for b in queries]) @ ref_thumbs.T
+    candidates, links = [], 0
+    depth_cache: dict[int, np.ndarray] = {}
+    for qi, b in enumerate(queries):
+        for a in np.argsort(-sims[qi])[: cfg.links_per_frame]:
+            a = int(a)
+            links += 1
+            if a not in depth_cache:
+                depth_cache[a] = ref_depth(a)
+            p = link_pose(ref_images[a], images[b], ref_K, K, depth_cache[a], cfg)
+            if p.ok:
+                candidates.append(ref_T[a] @ np.linalg.inv(p.T) @ np.linalg.inv(T[b]))
+    if not candidates:
+        return Registration(np.eye(4), links, 0, 0)
+    M, inl = robust_mean_transform(np.stack(candidates), cfg.inlier_deg)
+    return Registration(M, links, len(candidates), int(inl.sum()))

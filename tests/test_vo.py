@@ -1,0 +1,139 @@
+"""Keyframe odometry and cross-sequence registration on rendered sequences with known poses."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from relocdepth.geometry import umeyama
+from relocdepth.metrics import apply_sim3, rotation_angle_deg
+from relocdepth.synth import SEVEN_SCENES_INTRINSICS, SynthConfig, build_scene, camera_paths, render
+from relocdepth.vo import (
+    chain,
+    pair_pose,
+    register,
+    robust_mean_transform,
+    sample_depth,
+    wide_pair_pose,
+)
+
+INTR = SEVEN_SCENES_INTRINSICS.scaled(128, 96)  # the demo scene's camera
+STRIDE = 2  # every other frame of the demo path: ~1.5 cm and ~1 deg apart
+
+
+def _rigid(rotvec_deg: tuple[float, float, float], t: tuple[float, float, float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.radians(np.asarray(rotvec_deg, np.float64)))[0]
+    T[:3, 3] = t
+    return T
+
+
+@pytest.fixture(scope="module")
+def rendered() -> dict:
+    """Sequence A: 20 frames of the demo scene's first path; sequence B: 8 frames of the same path
+    (odd frames, from frame 9 on) seen from a camera rig moved by a known rigid transform."""
+    cfg = SynthConfig(seed=0, frames=60, width=INTR.width, height=INTR.height)
+    scene = build_scene(cfg.seed, cfg)
+    path = camera_paths(cfg)["seq-01"]
+    T_a = path[0:40:STRIDE]
+    shift = _rigid((1.0, -2.0, 1.5), (0.04, -0.03, 0.02))  # world from the rig's world
+    T_b = np.stack([shift @ T for T in path[9:25:STRIDE]])
+    out = {"T_a": T_a, "T_b": T_b}
+    for name, poses in (("a", T_a), ("b", T_b)):
+        frames = [render(scene, T, INTR) for T in poses]
+        out[f"img_{name}"] = [f[0] for f in frames]
+        out[f"depth_{name}"] = [f[1] for f in frames]
+    return out
+
+
+def _aligned_centres(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, np.ndarray]:
+    s, R, t = umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True)
+    T_al = apply_sim3(float(s), R.double().numpy(), t.double().numpy(), T_est)
+    return float(s), np.linalg.norm(T_al[:, :3, 3] - T_gt[:, :3, 3], axis=1)
+
+
+def test_sample_depth_is_bilinear_and_skips_invalid() -> None:
+    y, x = np.mgrid[0:6, 0:8].astype(np.float64)
+    depth = 1.0 + 0.5 * x + 0.25 * y  # bilinear interpolation reproduces a plane exactly
+    pts = np.array([[2.5, 3.25], [0.0, 0.0], [7.0, 5.0], [6.9, 4.1]])
+    assert np.allclose(sample_depth(depth, pts), 1.0 + 0.5 * pts[:, 0] + 0.25 * pts[:, 1])
+    depth[3, 2] = 0.0  # invalid: any sample that touches it is unknown
+    out = sample_depth(depth, np.array([[2.5, 3.25], [5.5, 1.5], [-0.5, 1.0], [8.5, 1.0]]))
+    assert np.isnan(out[0]) and np.isfinite(out[1]) and np.isnan(out[2:]).all()
+
+
+def test_robust_mean_ignores_outlying_links() -> None:
+    rng = np.random.default_rng(0)
+    truth = _rigid((10.0, -20.0, 5.0), (0.3, -0.1, 0.2))
+    links = [truth @ _rigid(tuple(rng.normal(0, 0.5, 3)), tuple(rng.normal(0, 0.01, 3)))
+             for _ in range(20)]
+    links += [_rigid(tuple(rng.uniform(-90, 90, 3)), tuple(rng.uniform(-1, 1, 3))) for _ in range(8)]
+    T, inl = robust_mean_transform(np.stack(links), inlier_deg=5.0)
+    assert inl[:20].all() and not inl[20:].any()
+    assert rotation_angle_deg(T[:3, :3].T @ truth[:3, :3]) < 0.5
+    assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.01
+
+
+def test_chain_with_true_depth_is_metric(rendered: dict) -> None:
+    T_gt = rendered["T_a"]
+    depth = rendered["depth_a"]
+    traj = chain(rendered["img_a"], INTR.K(), depth.__getitem__)
+    assert np.allclose(traj.T_wc[0], np.eye(4))
+    assert len(traj.keyframes) >= 5 and not traj.lost
+    scale, err = _aligned_centres(traj.T_wc, T_gt)
+    path_len = np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1).sum()
+    assert path_len > 0.2  # the camera does travel: the errors below mean something
+    assert abs(scale - 1.0) < 0.1, scale  # true depth in metres: the chain is in metres
+    assert np.sqrt(np.mean(err ** 2)) < 0.1 * path_len, (err, path_len)
+    # relative rotations need no alignment
+    R_rel = np.linalg.inv(traj.T_wc[0])[:3, :3] @ traj.T_wc[-1][:3, :3]
+    R_gt = T_gt[0, :3, :3].T @ T_gt[-1, :3, :3]
+    assert rotation_angle_deg(R_rel.T @ R_gt) < 2.0
+
+
+def test_chain_scale_follows_the_depth_units(rendered: dict) -> None:
+    depth = [3.0 * d for d in rendered["depth_a"][:10]]  # a depth in other units (x3)
+    traj = chain(rendered["img_a"][:10], INTR.K(), depth.__getitem__)
+    scale, _ = _aligned_centres(traj.T_wc, rendered["T_a"][:10])
+    assert abs(scale - 1 / 3) < 0.05, scale
+
+
+def test_register_recovers_the_rig_transform(rendered: dict) -> None:
+    K = INTR.K()
+    tr_a = chain(rendered["img_a"], K, rendered["depth_a"].__getitem__)
+    tr_b = chain(rendered["img_b"], K, rendered["depth_b"].__getitem__)
+    reg = register(rendered["img_a"], tr_a.T_wc, K, rendered["depth_a"].__getitem__,
+                   rendered["img_b"], tr_b.T_wc, K)
+    truth = np.linalg.inv(rendered["T_a"][0]) @ rendered["T_b"][0]  # A's world from B's world
+    assert reg.inliers >= 3
+    assert rotation_angle_deg(reg.T[:3, :3].T @ truth[:3, :3]) < 2.0
+    assert np.linalg.norm(reg.T[:3, 3] - truth[:3, 3]) < 0.03, (reg.T[:3, 3], truth[:3, 3])
+
+
+@pytest.mark.parametrize("frame,move,turn", [
+    (0, (0.25, 0.05, 0.0), (0.0, -15.0, 0.0)),  # 25 cm sideways, turned back toward the scene
+    (40, None, None),  # 40 frames along the demo path: 11 cm and 14 deg, beyond KLT's reach
+])
+def test_wide_pair_pose_is_metric_across_wide_baselines(frame: int, move: tuple | None,
+                                                        turn: tuple | None) -> None:
+    cfg = SynthConfig(seed=0, frames=frame + 1, width=INTR.width, height=INTR.height)
+    scene = build_scene(cfg.seed, cfg)
+    path = camera_paths(cfg)["seq-01"]
+    T_a = path[0]
+    T_b = path[frame] if move is None else T_a @ _rigid(turn, move)  # moved in camera a's axes
+    (img_a, depth_a), (img_b, _) = render(scene, T_a, INTR), render(scene, T_b, INTR)
+    truth = np.linalg.inv(T_b) @ T_a  # T_{b<-a}, metres
+    assert rotation_angle_deg(truth[:3, :3]) > 10 and np.linalg.norm(truth[:3, 3]) > 0.1
+    p = wide_pair_pose(img_a, img_b, INTR.K(), INTR.K(), depth_a)
+    assert p.ok and p.measured
+    assert rotation_angle_deg(p.T[:3, :3].T @ truth[:3, :3]) < 1.0
+    assert np.linalg.norm(p.T[:3, 3] - truth[:3, 3]) < 0.03, (p.T[:3, 3], truth[:3, 3])
+
+
+def test_pairs_without_texture_fail() -> None:
+    blank = np.full((INTR.height, INTR.width, 3), 128, np.uint8)
+    depth = np.ones((INTR.height, INTR.width), np.float32)
+    for pose in (pair_pose, wide_pair_pose):
+        p = pose(blank, blank, INTR.K(), INTR.K(), depth)
+        assert not p.ok and not p.measured and np.allclose(p.T, np.eye(4))
