@@ -117,15 +117,46 @@ def test_stop_signal_writes_a_final_checkpoint(synth_shards: Path, tmp_path: Pat
     assert logged == [parameter_digest(nets)]
 
 
+# Runs `reloc train` with the checkpoint writer held back: before writing a checkpoint it says so on
+# stderr and waits, so a test can deliver a signal while the trainer is finishing (on a loaded machine
+# a tiny run may otherwise finish its step and checkpoint before the test gets to send it).
+_WAITING_WRITER = '''
+import sys, time
+from pathlib import Path
+
+import relocdepth.checkpoint as C
+
+real = C.atomic_write
+
+
+def atomic_write(path, write):
+    if Path(path).name.startswith("ckpt-"):
+        print("checkpoint writer waiting", file=sys.stderr, flush=True)
+        time.sleep(120)
+    return real(path, write)
+
+
+C.atomic_write = atomic_write
+from relocdepth.cli.main import main
+
+main(sys.argv[1:])
+'''
+
+
 @pytest.mark.slow
 def test_second_ctrl_c_aborts_without_a_checkpoint(synth_shards: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
-    proc = _Proc(_train_cmd(synth_shards, run, "--checkpoint-every", NEVER, "--max-steps", NEVER))
+    script = tmp_path / "waiting_writer.py"
+    script.write_text(_WAITING_WRITER)
+    cmd = [sys.executable, str(script), *_train_cmd(synth_shards, run, "--checkpoint-every", NEVER,
+                                                    "--max-steps", NEVER)[3:]]
+    proc = _Proc(cmd)
     proc.wait_for(lambda: len(_logged_steps(run)) >= 1, "the first step")
     proc.p.send_signal(signal.SIGINT)
     # The second one once the first was handled (two signals before Python runs its handler would
-    # count as one), while the trainer is still finishing its step.
+    # count as one), while the trainer is finishing: about to write its final checkpoint.
     proc.wait_for(lambda: "stop requested" in proc.stderr(), "the first signal's message")
+    proc.wait_for(lambda: "checkpoint writer waiting" in proc.stderr(), "the final checkpoint")
     proc.p.send_signal(signal.SIGINT)
     rc, out, err = proc.finish()
     # The exit code is the one of an interrupted run (130) either way; what differs is that the
