@@ -11,7 +11,7 @@ pose error of frames k apart vs the identity's, the fitted scale, the registrati
 and the time per frame.
 
     python benchmarks/quality/vo_trajectory.py /tmp/q1/data/shards \
-        --checkpoint /tmp/s3/w10/checkpoints/ckpt-00000302.pt
+        --checkpoint runs/kitchen-w10
     python benchmarks/quality/vo_trajectory.py ../shared/data/hololens-office --size 192x128
 
 Data: shards from `reloc ingest` (the training split, every sequence), or one walk-through folder
