@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from relocdepth.errors import UserError
-from relocdepth.metrics import chordal_mean_rotation, rotation_angle_deg, thumbnail
+from relocdepth.eval_geometry import chordal_mean_rotation, rotation_angle_deg
+from relocdepth.metrics import thumbnail
 from relocdepth.twoview import (
     BOOTSTRAP_MIN_PARALLAX_PX,
     as_grey,

@@ -6,8 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from relocdepth.geometry import umeyama
-from relocdepth.metrics import apply_sim3, rotation_angle_deg
+from relocdepth.eval_geometry import apply_sim3, rotation_angle_deg, umeyama
 from relocdepth.synth import SEVEN_SCENES_INTRINSICS, SynthConfig, build_scene, camera_paths, render
 from relocdepth.vo import (
     chain,
@@ -48,8 +47,9 @@ def rendered() -> dict:
 
 
 def _aligned_centres(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, np.ndarray]:
-    s, R, t = umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True)
-    T_al = apply_sim3(float(s), R.double().numpy(), t.double().numpy(), T_est)
+    fit = umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=True)
+    s, R, t = fit.scale, fit.R, fit.t
+    T_al = apply_sim3(float(s), R, t, T_est)
     return float(s), np.linalg.norm(T_al[:, :3, 3] - T_gt[:, :3, 3], axis=1)
 
 

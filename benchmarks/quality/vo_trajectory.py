@@ -30,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from relocdepth import eval_geometry as EG
 from relocdepth import metrics as M
 from relocdepth.camera import Intrinsics
 from relocdepth.dataset import DEPTH_SCALE, open_dataset
@@ -101,8 +102,9 @@ def network_depth(checkpoint: str, seqs: list[Sequence]) -> tuple[list[list[np.n
 
 def ate(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
     """Sim(3)-aligned camera-centre errors (m): RMSE, median; and the fitted scale."""
-    s, R, t = fit_sim3(T_est, T_gt)
-    err = np.linalg.norm(M.apply_sim3(s, R, t, T_est)[:, :3, 3] - T_gt[:, :3, 3], axis=1)
+    fit = fit_sim3(T_est, T_gt)
+    s, R, t = fit.scale, fit.R, fit.t
+    err = np.linalg.norm(EG.apply_sim3(s, R, t, T_est)[:, :3, 3] - T_gt[:, :3, 3], axis=1)
     return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "median_m": float(np.median(err)),
             "scale": s}
 
@@ -133,8 +135,9 @@ def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: 
     T_est, T_gt = np.concatenate(world), np.concatenate([s.T_gt for s in seqs])
     names = [s.name for s in seqs for _ in s.images]
     joint = ate(T_est, T_gt)
-    s_, R_, t_ = fit_sim3(T_est, T_gt)
-    T_al = M.apply_sim3(s_, R_, t_, T_est)
+    fit = fit_sim3(T_est, T_gt)
+    s_, R_, t_ = fit.scale, fit.R, fit.t
+    T_al = EG.apply_sim3(s_, R_, t_, T_est)
     out["joint"] = joint | {"relative": M.relative_pose_errors(T_al, T_gt, names, k)}
     # The registration's own error: the true reference-from-sequence transform vs the estimate
     # (its translation scaled to metres by the joint scale).
@@ -144,7 +147,7 @@ def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: 
         row = out["sequences"].setdefault(s.name, {})
         # rotation drift: both trajectories start at the first frame, so no alignment is needed
         R_gt = np.linalg.inv(s.T_gt[0])[:3, :3] @ s.T_gt[:, :3, :3]
-        drift = M.rotation_angle_deg(np.swapaxes(tr.T_wc[:, :3, :3], -1, -2) @ R_gt)
+        drift = EG.rotation_angle_deg(np.swapaxes(tr.T_wc[:, :3, :3], -1, -2) @ R_gt)
         row |= {"frames": len(s.images), "keyframes": len(tr.keyframes), "lost": len(tr.lost),
                 "alone": ate(tr.T_wc, s.T_gt),
                 "rotation_drift_deg": {"median": float(np.median(drift)), "max": float(drift.max())},
@@ -152,12 +155,12 @@ def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: 
         if "registration" in row:
             T_true = np.linalg.inv(ref.T_gt[0]) @ s.T_gt[0]
             T_reg = row["registration"].pop("T")
-            row["registration"]["r_err_deg"] = float(M.rotation_angle_deg(T_reg[:3, :3].T @ T_true[:3, :3]))
+            row["registration"]["r_err_deg"] = float(EG.rotation_angle_deg(T_reg[:3, :3].T @ T_true[:3, :3]))
             row["registration"]["t_err_m"] = float(np.linalg.norm(s_ * T_reg[:3, 3] - T_true[:3, 3]))
             # how far apart the two paths are: per frame, the nearest reference frame that looks
             # within GAP_DEG the same way (ground truth; what a link's pair has to bridge)
             dist = np.linalg.norm(s.T_gt[:, None, :3, 3] - ref.T_gt[None, :, :3, 3], axis=-1)
-            ang = M.rotation_angle_deg(np.einsum("bji,ajk->baik", s.T_gt[:, :3, :3], ref.T_gt[:, :3, :3]))
+            ang = EG.rotation_angle_deg(np.einsum("bji,ajk->baik", s.T_gt[:, :3, :3], ref.T_gt[:, :3, :3]))
             gap = np.where(ang < GAP_DEG, dist, np.inf).min(axis=1)
             row["registration"]["path_gap_m"] = float(np.median(gap))
     return out
