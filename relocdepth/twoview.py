@@ -259,9 +259,9 @@ def _rotation_from_homography(na: np.ndarray, nb: np.ndarray, threshold: float) 
     H, _ = cv2.findHomography(na, nb, cv2.RANSAC, threshold, maxIters=500, confidence=0.995)
     if H is None or not np.all(np.isfinite(H)):
         return None
-    U, _, Vt = np.linalg.svd(H)
-    R = U @ Vt
-    return R * np.linalg.det(R)  # det(R) = +-1: a rotation, whatever the homography's sign
+    from relocdepth.eval_geometry import project_to_so3
+
+    return project_to_so3(H * np.sign(np.linalg.det(H)))  # a positive multiple of the rotation
 
 
 def _rotation_residual_px(rays_a: np.ndarray, pts_b: np.ndarray, R: np.ndarray, K_b: np.ndarray) -> float:
