@@ -31,19 +31,7 @@ from relocdepth import geometry as geo
 from relocdepth.dataset import open_dataset
 from relocdepth.evaluate import pose_report
 from relocdepth.models.dsc import DSCNet
-from relocdepth.vo import VOConfig, chain, register
-
-
-def vo_world(seqs: list[V.Sequence], depths: list[list[np.ndarray]]) -> np.ndarray:
-    """Odometry of every training sequence, registered into the first one's world."""
-    cfg = VOConfig()
-    trajs = [chain(s.images, s.intrinsics.K(), d.__getitem__, cfg) for s, d in zip(seqs, depths)]
-    world = [trajs[0].T_wc]
-    for s, d, tr in zip(seqs[1:], depths[1:], trajs[1:]):
-        reg = register(seqs[0].images, trajs[0].T_wc, seqs[0].intrinsics.K(), depths[0].__getitem__,
-                       s.images, tr.T_wc, s.intrinsics.K(), cfg)
-        world.append(reg.T @ tr.T_wc)
-    return np.concatenate(world)
+from relocdepth.vo import VOConfig
 
 
 def as_tensor(images: list[np.ndarray]) -> torch.Tensor:
@@ -71,7 +59,7 @@ def main() -> None:
     if args.targets == "vo":
         depths, _ = V.network_depth(args.checkpoint, seqs)
         depth_te = V.network_depth(args.checkpoint, [test])[0][0]
-        T_target = vo_world(seqs, depths)
+        T_target = np.concatenate(V.odometry_world(seqs, depths, VOConfig()).world)
     else:
         depths, depth_te = [s.depth_gt for s in seqs], test.depth_gt
         T_target = np.concatenate([s.T_gt for s in seqs])

@@ -35,7 +35,7 @@ from relocdepth import metrics as M
 from relocdepth.camera import Intrinsics
 from relocdepth.dataset import DEPTH_SCALE, open_dataset
 from relocdepth.evaluate import fit_sim3
-from relocdepth.vo import LINK_MATCHERS, VOConfig, chain, register
+from relocdepth.vo import LINK_MATCHERS, Registration, Trajectory, VOConfig, chain, register
 
 GAP_DEG = 15.0  # "looks the same way" for the gap between two paths
 
@@ -109,29 +109,41 @@ def ate(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
             "scale": s}
 
 
+@dataclass
+class World:
+    """Every sequence's odometry, the registrations of sequences 2.. into the first one's world,
+    the world poses of each sequence, and the CPU seconds of odometry and registration."""
+
+    trajs: list[Trajectory]
+    regs: list[Registration]
+    world: list[np.ndarray]
+    vo_s: float
+    reg_s: float
+
+
+def odometry_world(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig) -> World:
+    """Odometry per sequence and registration into the first one's world."""
+    t0 = time.process_time()
+    trajs = [chain(s.images, s.intrinsics.K(), d.__getitem__, cfg) for s, d in zip(seqs, depths)]
+    vo_s, t0 = time.process_time() - t0, time.process_time()
+    ref, ref_tr = seqs[0], trajs[0]
+    regs = [register(ref.images, ref_tr.T_wc, ref.intrinsics.K(), depths[0].__getitem__,
+                     s.images, tr.T_wc, s.intrinsics.K(), cfg) for s, tr in zip(seqs[1:], trajs[1:])]
+    world = [ref_tr.T_wc] + [reg.T @ tr.T_wc for reg, tr in zip(regs, trajs[1:])]
+    return World(trajs, regs, world, vo_s, time.process_time() - t0)
+
+
 def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: int) -> dict:
     """Odometry per sequence, registration into the first, and the scores."""
-    trajs, t_vo, n = [], 0.0, 0
-    for s, d in zip(seqs, depths):
-        t0 = time.process_time()
-        trajs.append(chain(s.images, s.intrinsics.K(), d.__getitem__, cfg))
-        t_vo += time.process_time() - t0
-        n += len(s.images)
-    out: dict = {"sequences": {}, "vo_s_per_frame": t_vo / n}
-    ref, ref_tr = seqs[0], trajs[0]
-    world = [ref_tr.T_wc]
-    t_reg, links = 0.0, 0
-    for s, d, tr in zip(seqs[1:], depths[1:], trajs[1:]):
-        t0 = time.process_time()
-        reg = register(ref.images, ref_tr.T_wc, ref.intrinsics.K(), depths[0].__getitem__,
-                       s.images, tr.T_wc, s.intrinsics.K(), cfg)
-        t_reg += time.process_time() - t0
-        links += reg.links
-        world.append(reg.T @ tr.T_wc)
+    w = odometry_world(seqs, depths, cfg)
+    trajs, world, ref = w.trajs, w.world, seqs[0]
+    out: dict = {"sequences": {}, "vo_s_per_frame": w.vo_s / sum(len(s.images) for s in seqs)}
+    for s, reg in zip(seqs[1:], w.regs):
         out["sequences"][s.name] = {"registration": {"links": reg.links, "used": reg.used,
                                                      "inliers": reg.inliers, "T": reg.T}}
+    links = sum(reg.links for reg in w.regs)
     if links:
-        out["registration_s_per_link"] = t_reg / links
+        out["registration_s_per_link"] = w.reg_s / links
     T_est, T_gt = np.concatenate(world), np.concatenate([s.T_gt for s in seqs])
     names = [s.name for s in seqs for _ in s.images]
     joint = ate(T_est, T_gt)
