@@ -74,10 +74,9 @@ def save_checkpoint(run_dir: str | Path, state: dict[str, Any], keep_last: int =
     validate("checkpoint", meta, "checkpoint metadata")
     d = checkpoint_dir(run_dir)
     path = d / checkpoint_name(int(meta["step"]))
-    # temp files of checkpoints and pointers left by a killed writer (one writer per run)
-    for pattern in (".ckpt-*.tmp", f".{POINTER_NAME}.*.tmp"):
-        for stale in d.glob(pattern) if d.is_dir() else ():
-            stale.unlink(missing_ok=True)
+    # temp files (checkpoint or pointer) left by a killed writer: one writer per run
+    for stale in d.glob(".*.tmp") if d.is_dir() else ():
+        stale.unlink(missing_ok=True)
     atomic_write(path, lambda f: torch.save(state, f))
     pointer = {
         "format": POINTER_FORMAT, "format_version": FORMAT_VERSION,
