@@ -88,16 +88,27 @@ class Bootstrap:
     essential-matrix poses of the pairs middle -> source ``(T (B, 2, 4, 4) with unit translations,
     points (B, 2, N, 3), ok (B, 2))`` from :func:`relocdepth.twoview.bootstrap_pair`, their
     translations scaled by the current depth; else ``nets.relpose``.
+
+    ``T_anchor`` ``(B, 3, 4, 4)``: world poses of the triplet's frames from the training frames'
+    own odometry (:mod:`relocdepth.vo`, in the depth network's units), which every DSC cell's pose
+    is pulled towards with weight ``w_anchor`` (``L_anchor``): absolute targets, where ``L_boot``
+    teaches relative poses only.
     """
 
     warps: bool
     w_consistency: float
     T_wc: Tensor | None = None
     two_view: tuple[Tensor, Tensor, Tensor] | None = None
+    T_anchor: Tensor | None = None
+    w_anchor: float = 0.0
 
     @property
     def active(self) -> bool:
         return self.warps or self.w_consistency > 0
+
+    @property
+    def anchored(self) -> bool:
+        return self.T_anchor is not None and self.w_anchor > 0
 
 
 def bootstrap_poses(nets: Networks, inputs: Tensor, T_wc: Tensor | None = None) -> Tensor:
@@ -199,7 +210,9 @@ def triplet_loss(
         of the DSC's relative poses with the bootstrap's, added with weight ``boot.w_consistency``)
         and diagnostics ``boot_warps`` (1 when the warps use the bootstrap poses), ``boot_rel_trans``,
         ``boot_rel_rot_deg`` (size of the bootstrap's relative poses) and ``dsc_boot_trans``,
-        ``dsc_boot_rot_deg`` (how far the DSC's relative poses are from them).
+        ``dsc_boot_rot_deg`` (how far the DSC's relative poses are from them). With ``boot.anchored``:
+        ``parts["L_anchor"]`` (added with weight ``boot.w_anchor``) and diagnostics ``anchor_trans``,
+        ``anchor_rot_deg`` (how far the DSC's poses are from the anchors).
     """
     _check_triplets(images, inputs, K)
     B, _, C, H, W = images.shape
@@ -261,23 +274,25 @@ def _triplet_loss_fp32(
         return flat(geo.relative_pose(T_wc[:, t_idx], T_wc[:, s_idx]))
 
     use_boot = T_boot is not None and boot is not None
+    anchored = boot is not None and boot.anchored
     T_t2s = pair_poses(T_boot if use_boot and boot.warps else T)  # type: ignore[union-attr]
     boot_parts: dict[str, Tensor] = {}
     boot_diag: dict[str, float] = {}
+    # The bootstrap's terms teach the DSC network, not the depth network, where the cameras are:
+    # its poses on detached depth (w/o DSC the pose does not depend on depth).
+    cons = (_absolute_poses(pose_out, depths[0].detach(), Kf, True, "mean")
+            if cfg.use_dsc and (use_boot or anchored) else None)
+    T_cons = (T if cons is None else cons[0]).reshape(B, 3, 4, 4)
+    # Translations count relative to the scene's depth (the triplet's median, detached): a camera
+    # shift t moves the image of points at depth D by t / D radians, so this weighs it like a
+    # rotation whatever units the depth network has settled on (monocular training leaves its
+    # scale free: ~0.2 units for ~1.7 m on the demo scene, where an unscaled translation error
+    # was ~8x too light to teach the DSC network anything but rotation).
+    scene_depth = depths[0].detach().reshape(B, -1).median(dim=1).values  # (B,)
     if use_boot:
         assert T_boot is not None and boot is not None
-        # The DSC learns the bootstrap's relative poses; depth is detached here so that the term
-        # teaches the DSC network, not the depth network, where the cameras are.
-        T_cons = T if not cfg.use_dsc else _absolute_poses(
-            pose_out, depths[0].detach(), Kf, cfg.use_dsc, "mean")[0].reshape(B, 3, 4, 4)
         rel_net, rel_boot = pair_poses(T_cons), pair_poses(T_boot.detach())
-        # Translations count relative to the scene's depth (the triplet's median, detached): a camera
-        # shift t moves the image of points at depth D by t / D radians, so this weighs it like a
-        # rotation whatever units the depth network has settled on (monocular training leaves its
-        # scale free: ~0.2 units for ~1.7 m on the demo scene, where an unscaled translation error
-        # was ~8x too light to teach the DSC network anything but rotation). Pairs whose bootstrap
-        # translation was not measured teach the rotation only.
-        scene_depth = depths[0].detach().reshape(B, -1).median(dim=1).values  # (B,)
+        # Pairs whose bootstrap translation was not measured teach the rotation only.
         t_weight = (1.0 / scene_depth)[:, None].expand(B, P)
         if t_known is not None:
             t_weight = t_weight * (t_known[:, t_idx] & t_known[:, s_idx]).to(T.dtype)
@@ -289,6 +304,21 @@ def _triplet_loss_fp32(
             boot_diag = {"boot_warps": float(boot.warps), "boot_rel_trans": float(t_b.mean()),
                          "boot_rel_rot_deg": float(r_b.mean()), "dsc_boot_trans": float(t_d.mean()),
                          "dsc_boot_rot_deg": float(r_d.mean())}
+    if anchored:
+        assert boot is not None and boot.T_anchor is not None
+        # every cell's pose (w/o DSC the image's) against its frame's anchor
+        if cons is not None:
+            q_cells, c_cells = cons[1], cons[2]  # (B * 3, n, 4), (B * 3, n, 3)
+            T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3))
+        else:
+            T_cells = T.reshape(-1, 4, 4)
+        n = T_cells.shape[0] // (B * 3)
+        T_a = boot.T_anchor.to(T.dtype).reshape(B * 3, 1, 4, 4).expand(B * 3, n, 4, 4).reshape(-1, 4, 4)
+        w_t = (1.0 / scene_depth)[:, None].expand(B, 3 * n).reshape(-1)
+        boot_parts["L_anchor"] = relative_pose_consistency(T_cells, T_a, w_t).mean()
+        with torch.no_grad():
+            t_a, r_a = geo.pose_errors(T_cons.detach().reshape(-1, 4, 4), boot.T_anchor.to(T.dtype).reshape(-1, 4, 4))
+            boot_diag.update({"anchor_trans": float(t_a.mean()), "anchor_rot_deg": float(r_a.mean())})
     K_t, K_s = flat(K[:, t_idx]), flat(K[:, s_idx])
     I_t, I_s = flat(images[:, t_idx]), flat(images[:, s_idx])
 
@@ -328,6 +358,8 @@ def _triplet_loss_fp32(
     total = L_p + cfg.w_s * L_s + cfg.w_c * L_c
     if "L_boot" in boot_parts and boot is not None and boot.w_consistency > 0:
         total = total + boot.w_consistency * boot_parts["L_boot"]
+    if "L_anchor" in boot_parts and boot is not None:
+        total = total + boot.w_anchor * boot_parts["L_anchor"]
     parts.update({"L_p": L_p, "L_s": L_s, "L_c": L_c, **boot_parts})
     for i, (t, s) in enumerate(pairs):
         parts[f"L_p/pair_{t}{s}"] = lp_pairs[i]

@@ -48,6 +48,8 @@ log = logging.getLogger(__name__)
 CONFIG_NAME = "config.json"
 # Sources of the relative-pose bootstrap (TrainConfig.bootstrap); "oracle-gt" reads ground truth.
 BOOTSTRAP_SOURCES = ("off", "posenet", "essential", "oracle-gt")
+# Sources of the DSC network's absolute anchors (TrainConfig.anchor).
+ANCHOR_SOURCES = ("off", "vo")
 
 
 # The configs a TrainConfig is composed of, by their key in it (and in a run's config.json).
@@ -91,6 +93,16 @@ class TrainConfig:
     bootstrap_steps: int = 0
     bootstrap_fade_steps: int = 500
     w_bootstrap: float = 1.0
+    # Absolute anchors for the DSC network (not in the paper; README, fidelity): at step anchor_step
+    # (and every anchor_every steps after, 0: once) the training frames' own trajectory is built by
+    # keyframe odometry (relocdepth.vo: the bootstrap's two-view geometry with the depth network's
+    # depth, sequences registered into one world), and every DSC cell's pose is pulled towards its
+    # frame's pose there with weight w_anchor, for as long as the bootstrap lasts (fading with it).
+    # "vo" needs a bootstrap: depth must have learned before odometry can use it.
+    anchor: str = "off"
+    anchor_step: int = 200
+    anchor_every: int = 0
+    w_anchor: float = 1.0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
     amp: bool = False  # CUDA/CPU autocast
@@ -133,6 +145,12 @@ class TrainConfig:
             raise UserError(f"--bootstrap must be one of {', '.join(BOOTSTRAP_SOURCES)}, not {self.bootstrap!r}")
         if self.bootstrap != "off" and self.bootstrap_steps < 1:
             raise UserError(f"--bootstrap {self.bootstrap} needs --bootstrap-steps >= 1")
+        if self.anchor not in ANCHOR_SOURCES:
+            raise UserError(f"--anchor must be one of {', '.join(ANCHOR_SOURCES)}, not {self.anchor!r}")
+        if self.anchor != "off" and self.bootstrap == "off":
+            raise UserError(f"--anchor {self.anchor} needs a --bootstrap (depth learns first, odometry uses it)")
+        if self.anchor_step < 0 or self.anchor_every < 0 or self.w_anchor < 0:
+            raise UserError("--anchor-step, --anchor-every and --w-anchor must be >= 0")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
 
@@ -241,16 +259,35 @@ _FLAT_FIELDS = _sections_by_field()
 _SHARED_FIELDS = {name: keys for name, keys in _FLAT_FIELDS.items() if len(keys) > 1}
 
 
+def _bootstrap_fraction(cfg: TrainConfig, step: int) -> float:
+    """1 during the bootstrap, falling linearly to 0 over the fade after it; 0 without one."""
+    if cfg.bootstrap == "off":
+        return 0.0
+    if step < cfg.bootstrap_steps:
+        return 1.0
+    done = step - cfg.bootstrap_steps
+    return 0.0 if done >= cfg.bootstrap_fade_steps else 1.0 - done / cfg.bootstrap_fade_steps
+
+
 def bootstrap_at(cfg: TrainConfig, step: int) -> tuple[bool, float]:
     """(warps use the bootstrap poses, weight of the consistency term) at ``step``."""
-    if cfg.bootstrap == "off":
-        return False, 0.0
-    if step < cfg.bootstrap_steps:
-        return True, cfg.w_bootstrap
-    done = step - cfg.bootstrap_steps
-    if done >= cfg.bootstrap_fade_steps:
-        return False, 0.0
-    return False, cfg.w_bootstrap * (1.0 - done / cfg.bootstrap_fade_steps)
+    return cfg.bootstrap != "off" and step < cfg.bootstrap_steps, cfg.w_bootstrap * _bootstrap_fraction(cfg, step)
+
+
+def anchor_at(cfg: TrainConfig, step: int) -> float:
+    """Weight of the DSC-vs-anchor term at ``step`` (0 before ``anchor_step`` and without anchors)."""
+    if cfg.anchor == "off" or step < cfg.anchor_step:
+        return 0.0
+    return cfg.w_anchor * _bootstrap_fraction(cfg, step)
+
+
+def anchor_due(cfg: TrainConfig, step: int, built_at: int | None) -> bool:
+    """Whether the anchors are (re)built before ``step`` (``built_at``: the step of the current ones)."""
+    if anchor_at(cfg, step) <= 0:
+        return False
+    if built_at is None:
+        return True
+    return cfg.anchor_every > 0 and step - built_at >= cfg.anchor_every
 
 
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
@@ -272,6 +309,8 @@ class RunState:
     last_checkpoint: str | None = None
     stop: str | None = None  # why the loop ended early
     timing: dict[str, float] = field(default_factory=dict)
+    anchors: Any = None  # (N, 4, 4) float32 tensor: the DSC's anchors (TrainConfig.anchor), else None
+    anchors_step: int | None = None  # the step they were built at
 
 
 @dataclass
@@ -510,6 +549,8 @@ def _restore(ck: dict[str, Any], nets: Any, optimizer: Any, scaler: Any, state: 
     state.nonfinite_skipped = counters.get("nonfinite_skipped", 0)
     state.samples_skipped = counters.get("samples_skipped", 0)
     _set_rng_state(ck["rng"])
+    if ck.get("anchors"):
+        state.anchors, state.anchors_step = ck["anchors"]["T_wc"], int(ck["anchors"]["step"])
 
 
 def checkpoint(tr: Trainer, state: RunState) -> None:
@@ -535,6 +576,7 @@ def checkpoint(tr: Trainer, state: RunState) -> None:
         "meta": meta, "model": tr.nets.state_dict(), "optimizer": tr.optimizer.state_dict(),
         "scaler": tr.scaler.state_dict() if tr.scaler.is_enabled() else None,
         "sampler": {"epoch": state.epoch, "position": state.position}, "rng": _rng_state(),
+        "anchors": None if state.anchors is None else {"T_wc": state.anchors, "step": state.anchors_step},
     }, keep_last=tr.cfg.keep_last)
     state.last_checkpoint = str(path)
     tr.log.event("checkpoint", state.step, path=path.name)
@@ -563,19 +605,22 @@ def sample(tr: Trainer, state: RunState, batch: dict[str, Any]) -> dict[str, Any
     }
 
 
-def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0) -> tuple[Any, dict[str, Any], dict[str, float]]:
+def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0,
+                   anchors: Any = None) -> tuple[Any, dict[str, Any], dict[str, float]]:
     """Named step: both networks on the triplets, the paper's loss (plus the bootstrap's, while it
-    lasts), its parts and diagnostics."""
+    lasts, with the DSC's ``anchors (N, 4, 4)`` when given), its parts and diagnostics."""
     import torch
 
     from relocdepth.method import Bootstrap
 
     boot = None
     warps, w = bootstrap_at(tr.cfg, step)
-    if warps or w > 0:
+    w_anchor = anchor_at(tr.cfg, step) if anchors is not None else 0.0
+    if warps or w > 0 or w_anchor > 0:
         T_wc = None if tr.gt_poses is None else tr.gt_poses[b["index"]].to(tr.device)
         two_view = (b["two_view_T"], b["two_view_points"], b["two_view_ok"]) if "two_view_T" in b else None
-        boot = Bootstrap(warps, w, T_wc, two_view)
+        T_anchor = anchors[b["index"]].to(tr.device) if w_anchor > 0 else None
+        boot = Bootstrap(warps, w, T_wc, two_view, T_anchor, w_anchor)
     depth = None
     if tr.gt_depths is not None:
         W, H = tr.cfg.size
@@ -583,6 +628,25 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0) -> tuple[Any, 
     dtype = torch.bfloat16 if tr.cfg.amp_dtype == "bf16" else torch.float16
     with torch.autocast(tr.device.type, dtype=dtype, enabled=tr.cfg.amp):
         return tr.loss_module(b["images"], b["inputs"], b["K"], boot, depth)
+
+
+def build_anchors(tr: Trainer, state: RunState) -> None:
+    """Named step: the DSC's anchors from the training frames' odometry with the current depth
+    network (every rank builds the same ones: same weights, same frames)."""
+    import torch
+
+    from relocdepth.anchors import build_anchors as build
+    from relocdepth.anchors import network_depth
+
+    m = tr.method_cfg
+    a = build(tr.frames, lambda _ix, ims: network_depth(tr.nets.depth, ims, tr.device, m.min_depth, m.max_depth),
+              tr.cfg.size)
+    state.anchors, state.anchors_step = torch.from_numpy(a.T_wc), state.step
+    reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
+    log.info("anchors at step %d: odometry of %d frames (%d keyframes, %d lost), registration inliers %s, %.1f s",
+             state.step, len(a.T_wc), a.keyframes, a.lost, reg, a.seconds)
+    tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
+                 registration=[list(r) for r in a.registration])
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
@@ -718,7 +782,9 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
             if no_data:
                 tr.log.event("empty_batch", state.step)
             else:
-                loss, parts, diag = forward_losses(tr, b, state.step)
+                if anchor_due(cfg, state.step, state.anchors_step):
+                    build_anchors(tr, state)
+                loss, parts, diag = forward_losses(tr, b, state.step, state.anchors)
                 stepped = optimizer_step(tr, state, loss)
                 if not stepped and state.nonfinite_streak >= cfg.max_nonfinite:
                     state.stop = "diverged"

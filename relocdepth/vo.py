@@ -20,6 +20,7 @@ world is its first frame.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -267,3 +268,32 @@ def register(ref_images: Sequence[np.ndarray], ref_T: np.ndarray, ref_K: np.ndar
         return Registration(np.eye(4), links, 0, 0)
     M, inl = robust_mean_transform(np.stack(candidates), cfg.inlier_deg)
     return Registration(M, links, len(candidates), int(inl.sum()))
+
+
+@dataclass
+class World:
+    """Every sequence's odometry (:func:`chain`), the registrations of sequences 2.. into the first
+    one's world (:func:`register`), each sequence's poses in that world ``(N_i, 4, 4)``, and the CPU
+    seconds of odometry and of registration."""
+
+    trajs: list[Trajectory]
+    regs: list[Registration]
+    world: list[np.ndarray]
+    vo_s: float
+    reg_s: float
+
+
+def world_trajectory(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndarray],
+                     depth: Sequence[DepthSource], cfg: VOConfig = VOConfig()) -> World:
+    """One world for several sequences of one place: odometry per sequence (``images[i]`` in order,
+    camera ``K[i]``, depth maps ``depth[i](j)``), every sequence after the first registered into the
+    first one's world (whose origin is its first frame; units: the depth's)."""
+    if not (len(images) == len(K) == len(depth)) or not images:
+        raise ValueError("world_trajectory needs images, K and depth for each of >= 1 sequences")
+    t0 = time.process_time()
+    trajs = [chain(im, k, d, cfg) for im, k, d in zip(images, K, depth)]
+    vo_s, t0 = time.process_time() - t0, time.process_time()
+    regs = [register(images[0], trajs[0].T_wc, K[0], depth[0], im, tr.T_wc, k, cfg)
+            for im, k, tr in zip(images[1:], K[1:], trajs[1:])]
+    world = [trajs[0].T_wc] + [reg.T @ tr.T_wc for reg, tr in zip(regs, trajs[1:])]
+    return World(trajs, regs, world, vo_s, time.process_time() - t0)

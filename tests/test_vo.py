@@ -137,3 +137,19 @@ def test_pairs_without_texture_fail() -> None:
     for pose in (pair_pose, wide_pair_pose):
         p = pose(blank, blank, INTR.K(), INTR.K(), depth)
         assert not p.ok and not p.measured and np.allclose(p.T, np.eye(4))
+
+
+def test_world_trajectory_puts_every_sequence_in_the_first_ones_world(rendered: dict) -> None:
+    from relocdepth.vo import world_trajectory
+
+    K = INTR.K()
+    w = world_trajectory([rendered["img_a"], rendered["img_b"]], [K, K],
+                         [rendered["depth_a"].__getitem__, rendered["depth_b"].__getitem__])
+    assert len(w.trajs) == 2 and len(w.regs) == 1 and [len(x) for x in w.world] == [20, 8]
+    world_of_a = np.linalg.inv(rendered["T_a"][0])  # A's first frame is the world
+    for est, T_gt in zip(w.world, (rendered["T_a"], rendered["T_b"])):
+        truth = world_of_a @ T_gt
+        assert np.linalg.norm(est[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.05
+        assert rotation_angle_deg(np.swapaxes(est[:, :3, :3], -1, -2) @ truth[:, :3, :3]).max() < 3.0
+    with pytest.raises(ValueError):
+        world_trajectory([rendered["img_a"]], [K, K], [rendered["depth_a"].__getitem__])

@@ -35,7 +35,7 @@ from relocdepth import metrics as M
 from relocdepth.camera import Intrinsics
 from relocdepth.dataset import DEPTH_SCALE, open_dataset
 from relocdepth.evaluate import fit_sim3
-from relocdepth.vo import LINK_MATCHERS, Registration, Trajectory, VOConfig, chain, register
+from relocdepth.vo import LINK_MATCHERS, VOConfig, World, world_trajectory
 
 GAP_DEG = 15.0  # "looks the same way" for the gap between two paths
 
@@ -109,28 +109,10 @@ def ate(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
             "scale": s}
 
 
-@dataclass
-class World:
-    """Every sequence's odometry, the registrations of sequences 2.. into the first one's world,
-    the world poses of each sequence, and the CPU seconds of odometry and registration."""
-
-    trajs: list[Trajectory]
-    regs: list[Registration]
-    world: list[np.ndarray]
-    vo_s: float
-    reg_s: float
-
-
 def odometry_world(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig) -> World:
     """Odometry per sequence and registration into the first one's world."""
-    t0 = time.process_time()
-    trajs = [chain(s.images, s.intrinsics.K(), d.__getitem__, cfg) for s, d in zip(seqs, depths)]
-    vo_s, t0 = time.process_time() - t0, time.process_time()
-    ref, ref_tr = seqs[0], trajs[0]
-    regs = [register(ref.images, ref_tr.T_wc, ref.intrinsics.K(), depths[0].__getitem__,
-                     s.images, tr.T_wc, s.intrinsics.K(), cfg) for s, tr in zip(seqs[1:], trajs[1:])]
-    world = [ref_tr.T_wc] + [reg.T @ tr.T_wc for reg, tr in zip(regs, trajs[1:])]
-    return World(trajs, regs, world, vo_s, time.process_time() - t0)
+    return world_trajectory([s.images for s in seqs], [s.intrinsics.K() for s in seqs],
+                            [d.__getitem__ for d in depths], cfg)
 
 
 def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: int) -> dict:

@@ -1,0 +1,195 @@
+"""Absolute anchors for the DSC network: the odometry-built world poses of the training frames,
+the DSC-vs-anchor term, its schedule, and the trainer's build, checkpoint and resume."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from relocdepth import geometry as geo
+from relocdepth.errors import UserError
+from relocdepth.eval_geometry import rotation_angle_deg
+from relocdepth.method import Bootstrap, MethodConfig, triplet_loss
+from relocdepth.models import ModelConfig, Networks
+
+torch.set_num_threads(1)
+H, W = 64, 96
+
+
+class _FixedDSC(torch.nn.Module):
+    """A DSC network whose output is given (the DSC of known poses)."""
+
+    def __init__(self, out: torch.Tensor) -> None:
+        super().__init__()
+        self.out = out
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out
+
+
+def _poses(n: int, seed: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    T = torch.eye(4).repeat(n, 1, 1)
+    T[:, :3, :3] = geo.so3_exp((torch.rand(n, 3, generator=gen) - 0.5) * 0.2)
+    T[:, :3, 3] = (torch.rand(n, 3, generator=gen) - 0.5) * 0.2
+    return T
+
+
+def test_anchor_term_is_the_cells_distance_to_the_anchor_in_scene_depth_units() -> None:
+    """A DSC whose cells all give the true poses: L_anchor is 0 at the true anchors; one frame of
+    three anchored |d| = 5 cm away costs |d| / D / 3 (D = scene depth), the same at 4x the depth
+    units; a 0.1 rad rotation offset of one frame costs 0.1 / 3; the term enters the total with its
+    weight, and the diagnostics say how far the DSC's poses are from the anchors."""
+    torch.manual_seed(0)
+    nets = Networks(ModelConfig())
+    imgs = torch.rand(1, 3, 3, H, W)
+    K = torch.tensor([[60.0, 0, (W - 1) / 2], [0, 60.0, (H - 1) / 2], [0, 0, 1]]).expand(1, 3, 3, 3).clone()
+    T_true = _poses(3, seed=1).reshape(1, 3, 4, 4)
+    cfg = MethodConfig(photometric_pixels="all")
+    got = []
+    for k in (1.0, 4.0):  # the same scene in two depth units
+        depth = torch.full((1, 3, 1, H, W), 1.5 * k)
+        T_k = T_true.clone()
+        T_k[..., :3, 3] *= k
+        nets.dsc = _FixedDSC(geo.dsc_from_pose(T_k.reshape(3, 4, 4), geo.pool_depth(depth.reshape(3, 1, H, W)),
+                                               K.reshape(3, 3, 3)))
+        _, parts, diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.0, T_anchor=T_k, w_anchor=1.0),
+                                      depth_override=depth)
+        assert float(parts["L_anchor"]) < 1e-3 and diag["anchor_trans"] < 1e-3 * k
+        off = T_k.clone()
+        off[0, 2, :3, 3] += torch.tensor([0.03, 0.0, -0.04]) * k
+        base, parts, diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.0, T_anchor=off, w_anchor=2.0),
+                                         depth_override=depth)
+        got.append(float(parts["L_anchor"]))
+        assert diag["anchor_trans"] == pytest.approx(0.05 * k / 3, rel=1e-2)
+        paper, _, _ = triplet_loss(nets, imgs, imgs, K, cfg, depth_override=depth)
+        assert float(base.detach()) == pytest.approx(float(paper.detach()) + 2.0 * got[-1], rel=1e-5)
+    assert got[0] == pytest.approx(0.05 / 1.5 / 3, rel=1e-2)
+    assert got[1] == pytest.approx(got[0], rel=1e-2)
+    turned = T_true.clone()
+    turned[0, 0, :3, :3] = turned[0, 0, :3, :3] @ geo.so3_exp(torch.tensor([0.0, 0.1, 0.0]))
+    depth = torch.full((1, 3, 1, H, W), 1.5)
+    nets.dsc = _FixedDSC(geo.dsc_from_pose(T_true.reshape(3, 4, 4), geo.pool_depth(depth.reshape(3, 1, H, W)),
+                                           K.reshape(3, 3, 3)))
+    _, parts, diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.0, T_anchor=turned, w_anchor=1.0),
+                                  depth_override=depth)
+    assert float(parts["L_anchor"]) == pytest.approx(0.1 / 3, rel=1e-2)
+    assert diag["anchor_rot_deg"] == pytest.approx(math.degrees(0.1) / 3, rel=1e-2)
+
+
+def test_anchor_term_teaches_the_dsc_network_only() -> None:
+    torch.manual_seed(0)
+    nets = Networks(ModelConfig())
+    imgs = torch.rand(1, 3, 3, H, W)
+    K = torch.tensor([[60.0, 0, (W - 1) / 2], [0, 60.0, (H - 1) / 2], [0, 0, 1]]).expand(1, 3, 3, 3).clone()
+    _, parts, _ = triplet_loss(nets, imgs, imgs, K, MethodConfig(),
+                               Bootstrap(False, 0.0, T_anchor=_poses(3, seed=2).reshape(1, 3, 4, 4), w_anchor=1.0))
+    parts["L_anchor"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in nets.dsc.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in nets.depth.parameters())
+
+
+def test_anchor_schedule_and_options() -> None:
+    from relocdepth.train import TrainConfig, anchor_at, anchor_due
+
+    cfg = TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "bootstrap_fade_steps": 4,
+                                 "anchor": "vo", "anchor_step": 3, "anchor_every": 5, "w_anchor": 2.0})
+    assert [anchor_at(cfg, s) for s in (0, 2, 3, 9, 10, 11, 14)] == [0.0, 0.0, 2.0, 2.0, 2.0, 1.5, 0.0]
+    assert not anchor_due(cfg, 2, None) and anchor_due(cfg, 3, None)
+    assert not anchor_due(cfg, 7, 3) and anchor_due(cfg, 8, 3)  # rebuilt every 5 steps
+    assert not anchor_due(cfg, 14, 13)  # the bootstrap has faded out: no more anchors
+    once = TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_step": 3})
+    assert anchor_due(once, 3, None) and not anchor_due(once, 9, 3)
+    assert anchor_at(TrainConfig(), 100) == 0.0
+    with pytest.raises(UserError, match="needs a --bootstrap"):
+        TrainConfig.from_dict({"anchor": "vo"})
+    with pytest.raises(UserError, match="--anchor must be one of"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "gps"})
+    with pytest.raises(UserError, match=">= 0"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "w_anchor": -1})
+
+
+def _gt(shards: Path, frames) -> tuple[np.ndarray, list[np.ndarray]]:
+    from relocdepth.dataset import open_dataset
+
+    ds = open_dataset(shards)
+    recs = {r.key: r for r in ds.frames("train")}
+    poses = np.stack([ds.read_pose(recs[f.key]) for f in frames.frames])
+    depths = [ds.read_depth(recs[f.key]) for f in frames.frames]
+    return poses, depths
+
+
+def test_anchors_with_true_depth_follow_each_sequence(synth_shards: Path) -> None:
+    """With ground-truth depth, every training frame's anchor is its true pose in the first
+    sequence's world: within each sequence the poses relative to its first frame are metric and
+    right, and each frame's anchor is at its own index."""
+    from relocdepth.anchors import build_anchors, sequences_of
+    from relocdepth.data import ImageFrames
+
+    frames = ImageFrames.open(synth_shards)
+    T_gt, depth_gt = _gt(synth_shards, frames)
+    seqs = sequences_of(frames)
+    assert len(seqs) >= 2 and sorted(i for ix in seqs for i in ix) == list(range(len(frames)))
+    for ix in seqs:
+        assert len({frames.frames[i].sequence for i in ix}) == 1
+        assert [frames.frames[i].frame for i in ix] == sorted(frames.frames[i].frame for i in ix)
+    W_, H_ = frames.frames[0].intrinsics.width, frames.frames[0].intrinsics.height
+    a = build_anchors(frames, lambda ix, ims: [depth_gt[i] for i in ix], (W_, H_))
+    assert a.T_wc.shape == (len(frames), 4, 4) and a.T_wc.dtype == np.float32 and a.lost == 0
+    assert len(a.registration) == len(seqs) - 1
+    assert np.allclose(a.T_wc[seqs[0][0]], np.eye(4), atol=1e-6)  # the world: sequence 1's first frame
+    # Each frame's anchor is its own pose in the odometry of its sequence...
+    from relocdepth.data import scale_and_crop
+    from relocdepth.vo import world_trajectory
+
+    images = [[scale_and_crop(frames.read_image(i), frames.frames[i].intrinsics, W_, H_, 1.0, 0, 0)[0] for i in ix]
+              for ix in seqs]
+    K = frames.frames[0].intrinsics.K()
+    w = world_trajectory(images, [K] * len(seqs), [lambda j, ix=ix: depth_gt[ix[j]] for ix in seqs])
+    for ix, T_seq in zip(seqs, w.world):
+        assert np.allclose(a.T_wc[ix], T_seq.astype(np.float32))
+    # ...and with true depth that odometry is metric and right on the first sequence (24 frames
+    # 1 cm apart at 128x96: ~30 % drift, ~3 deg); the same anchors at reversed indices are off by
+    # about the whole path. (The second sequence's turns leave pairs with too little parallax for a
+    # translation: its odometry is tested in test_vo on a path that suits it.)
+    ix = seqs[0]
+    rel_gt = np.linalg.inv(T_gt[ix[0]]) @ T_gt[ix]
+    path = np.linalg.norm(np.diff(T_gt[ix, :3, 3], axis=0), axis=1).sum()
+    err = np.linalg.norm(a.T_wc[ix, :3, 3] - rel_gt[:, :3, 3], axis=1)
+    assert path > 0.1 and err.max() < 0.4 * path, (err, path)
+    assert rotation_angle_deg(np.swapaxes(a.T_wc[ix, :3, :3], -1, -2) @ rel_gt[:, :3, :3]).max() < 5.0
+    back = np.linalg.inv(a.T_wc[ix[-1]]) @ a.T_wc[ix[::-1]]
+    assert np.linalg.norm(back[:, :3, 3] - rel_gt[:, :3, 3], axis=1).max() > 0.5 * path
+
+
+def _cfg(**kw):
+    from relocdepth.train import TrainConfig
+
+    return TrainConfig.from_dict({"size": (128, 96), "batch_size": 2, "pretrained": None, "workers": 0,
+                                  "progress": False, "log_every": 1, "bootstrap": "essential",
+                                  "bootstrap_steps": 10, "window": 3, "anchor": "vo", "anchor_step": 1, **kw})
+
+
+def test_trainer_builds_anchors_checkpoints_and_resumes_them(synth_shards: Path, tmp_path: Path) -> None:
+    from relocdepth import checkpoint as ckpt_io
+    from relocdepth.train import train
+
+    run = tmp_path / "run"
+    train(synth_shards, run, _cfg(max_steps=3, checkpoint_every=2))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    built = [d for d in log if d.get("event") == "anchors"]
+    assert [d["step"] for d in built] == [1]
+    steps = [d for d in log if "loss" in d]
+    assert "L_anchor" not in steps[0]["parts"]  # step 1 ran before the anchors
+    assert all("L_anchor" in d["parts"] and "anchor_trans" in d["diagnostics"] for d in steps[1:])
+    ck = ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])
+    assert ck["anchors"]["step"] == 1 and ck["anchors"]["T_wc"].shape[1:] == (4, 4)
+    train(synth_shards, run, _cfg(max_steps=4, resume=True))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    assert [d["step"] for d in log if d.get("event") == "anchors"] == [1]  # restored, not rebuilt
+    assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
