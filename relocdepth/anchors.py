@@ -66,7 +66,8 @@ def network_depth(depth_net: Any, images: list[np.ndarray], device: Any, min_dep
 DepthOf = Callable[[list[int], list[np.ndarray]], list[np.ndarray]]
 
 
-def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int], cfg: VOConfig = VOConfig()) -> Anchors:
+def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
+                  cfg: VOConfig | None = None) -> Anchors:
     """World poses of every training frame from odometry at ``size`` (W, H: images resized, as the
     trainer's un-augmented input) with ``depth``'s maps (in the trainer: the depth network's,
     :func:`network_depth`)."""
@@ -79,7 +80,7 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int], cf
         images.append([p[0] for p in pairs])
         Ks.append(pairs[0][1].K())
     depths = [depth(ix, im) for ix, im in zip(seqs, images)]
-    w = world_trajectory(images, Ks, [d.__getitem__ for d in depths], cfg)
+    w = world_trajectory(images, Ks, [d.__getitem__ for d in depths], cfg or VOConfig())
     T = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T_seq in zip(seqs, w.world):
         T[ix] = T_seq.astype(np.float32)
