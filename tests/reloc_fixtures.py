@@ -1,5 +1,6 @@
 """A run trained for one step on the shared synth shards, built once per session and shared by
-the localize and evaluate tests (a module-level cache: both test modules import this one)."""
+the localize and evaluate tests (a module-level cache: both test modules import this one); a DSC
+network of given output for the loss tests."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 
 _CACHE: dict[str, Path] = {}
 
@@ -30,3 +32,14 @@ def trained_run(shards: Path, factory: pytest.TempPathFactory) -> Path:
 def copy_run(run: Path, dest: Path) -> Path:
     shutil.copytree(run, dest)
     return dest
+
+
+class FixedDSC(torch.nn.Module):
+    """A DSC network whose output is given (the DSC of known poses)."""
+
+    def __init__(self, out: torch.Tensor) -> None:
+        super().__init__()
+        self.out = out
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from reloc_fixtures import FixedDSC
 
 from relocdepth import geometry as geo
 from relocdepth.errors import UserError
@@ -19,17 +20,6 @@ from relocdepth.models import ModelConfig, Networks
 
 torch.set_num_threads(1)
 H, W = 64, 96
-
-
-class _FixedDSC(torch.nn.Module):
-    """A DSC network whose output is given (the DSC of known poses)."""
-
-    def __init__(self, out: torch.Tensor) -> None:
-        super().__init__()
-        self.out = out
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.out
 
 
 def _poses(n: int, seed: int) -> torch.Tensor:
@@ -56,7 +46,7 @@ def test_anchor_term_is_the_cells_distance_to_the_anchor_in_scene_depth_units() 
         depth = torch.full((1, 3, 1, H, W), 1.5 * k)
         T_k = T_true.clone()
         T_k[..., :3, 3] *= k
-        nets.dsc = _FixedDSC(geo.dsc_from_pose(T_k.reshape(3, 4, 4), geo.pool_depth(depth.reshape(3, 1, H, W)),
+        nets.dsc = FixedDSC(geo.dsc_from_pose(T_k.reshape(3, 4, 4), geo.pool_depth(depth.reshape(3, 1, H, W)),
                                                K.reshape(3, 3, 3)))
         _, parts, diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.0, T_anchor=T_k, w_anchor=1.0),
                                       depth_override=depth)
@@ -74,7 +64,7 @@ def test_anchor_term_is_the_cells_distance_to_the_anchor_in_scene_depth_units() 
     turned = T_true.clone()
     turned[0, 0, :3, :3] = turned[0, 0, :3, :3] @ geo.so3_exp(torch.tensor([0.0, 0.1, 0.0]))
     depth = torch.full((1, 3, 1, H, W), 1.5)
-    nets.dsc = _FixedDSC(geo.dsc_from_pose(T_true.reshape(3, 4, 4), geo.pool_depth(depth.reshape(3, 1, H, W)),
+    nets.dsc = FixedDSC(geo.dsc_from_pose(T_true.reshape(3, 4, 4), geo.pool_depth(depth.reshape(3, 1, H, W)),
                                            K.reshape(3, 3, 3)))
     _, parts, diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.0, T_anchor=turned, w_anchor=1.0),
                                   depth_override=depth)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from reloc_fixtures import FixedDSC
 from typer.testing import CliRunner
 
 from relocdepth import geometry as geo
@@ -91,17 +92,6 @@ def test_relative_pose_consistency_measures_angle_and_translation() -> None:
     assert torch.isfinite(Tc.grad).all()
 
 
-class _FixedDSC(torch.nn.Module):
-    """A DSC network whose output is given (the DSC of known poses)."""
-
-    def __init__(self, out: torch.Tensor) -> None:
-        super().__init__()
-        self.out = out
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.out
-
-
 def test_consistency_weighs_translation_relative_to_scene_depth() -> None:
     """L_boot counts a translation error as t / D (D = the scene's depth): a DSC whose third camera
     is off by |d| from the bootstrap's costs |d| / D on the 4 of 6 pairs that involve it, and the
@@ -121,7 +111,7 @@ def test_consistency_weighs_translation_relative_to_scene_depth() -> None:
         T_k[..., :3, 3] *= k
         Tb_k[..., :3, 3] *= k
         cells = geo.pool_depth(depth.reshape(3, 1, H, W))
-        nets.dsc = _FixedDSC(geo.dsc_from_pose(T_k.reshape(3, 4, 4), cells, K.reshape(3, 3, 3)))
+        nets.dsc = FixedDSC(geo.dsc_from_pose(T_k.reshape(3, 4, 4), cells, K.reshape(3, 3, 3)))
         _, parts, _ = triplet_loss(nets, imgs, imgs, K, MethodConfig(), Bootstrap(True, 1.0, Tb_k),
                                    depth_override=depth)
         got.append(float(parts["L_boot"]))
