@@ -111,7 +111,7 @@ def train(
     bootstrap_fade_steps: Annotated[int, typer.Option("--bootstrap-fade-steps", help="Steps over which the DSC-vs-bootstrap consistency term fades to 0 after the hand-over.")] = 500,
     w_bootstrap: Annotated[float, typer.Option("--w-bootstrap", help="Weight of the DSC-vs-bootstrap relative-pose consistency term.")] = 1.0,
     anchor: Annotated[str, typer.Option(help="Absolute anchors for the DSC network (not the paper's; needs --bootstrap): off; vo (at --anchor-step, keyframe odometry of every training sequence with the depth network's depth, registered into one world; each DSC cell's pose is pulled towards its frame's pose there while the bootstrap lasts).")] = "off",
-    anchor_step: Annotated[int, typer.Option("--anchor-step", help="Step at which the anchors are built (the depth network must have learned by then).")] = 200,
+    anchor_step: Annotated[int, typer.Option("--anchor-step", help="Step at which the anchors are built (the depth network must have learned by then).")] = 150,
     anchor_every: Annotated[int, typer.Option("--anchor-every", help="Rebuild the anchors every N steps with the depth network of the time (0: build once).")] = 0,
     w_anchor: Annotated[float, typer.Option("--w-anchor", help="Weight of the DSC-vs-anchor term (fades out with the bootstrap).")] = 1.0,
     loss_resolution: Annotated[str, typer.Option("--loss-resolution", help="Each scale's L_p at its decoder layer's size ('decoder', the paper: images downsampled, K scaled; default) or at the input size ('input', monodepth2: disparity upsampled).")] = "decoder",

@@ -40,6 +40,10 @@ RECIPES: dict[str, dict[str, Any]] = {
     "cpu": dict(_CPU),
     "cpu-bootstrap": {**_CPU, **_BOOTSTRAP},
     "cpu-posenet": {**_CPU, **_BOOTSTRAP, "bootstrap": "posenet"},
+    # `cpu-bootstrap` + absolute anchors for the DSC network from the training frames' own odometry,
+    # built at step 150 and rebuilt every 250 steps (README, Training; Quality: steadier relative
+    # and rotation-only pose from step 300 on, the same depth).
+    "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250},
     # What `reloc demo` trains (its minutes end well inside the bootstrap).
     "demo": {**_CPU, **_BOOTSTRAP},
 }

@@ -100,7 +100,7 @@ class TrainConfig:
     # frame's pose there with weight w_anchor, for as long as the bootstrap lasts (fading with it).
     # "vo" needs a bootstrap: depth must have learned before odometry can use it.
     anchor: str = "off"
-    anchor_step: int = 200
+    anchor_step: int = 150
     anchor_every: int = 0
     w_anchor: float = 1.0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
