@@ -41,8 +41,8 @@ RECIPES: dict[str, dict[str, Any]] = {
     "cpu-bootstrap": {**_CPU, **_BOOTSTRAP},
     "cpu-posenet": {**_CPU, **_BOOTSTRAP, "bootstrap": "posenet"},
     # `cpu-bootstrap` + absolute anchors for the DSC network from the training frames' own odometry,
-    # built at step 150 and rebuilt every 250 steps (README, Training; Quality: steadier relative
-    # and rotation-only pose from step 300 on, the same depth).
+    # built at step 150 and rebuilt every 250 steps (README, Training; Quality trial 14: a better
+    # absolute pose, a steadier relative one up to ~600 steps and a worse one after, the same depth).
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250},
     # What `reloc demo` trains (its minutes end well inside the bootstrap).
     "demo": {**_CPU, **_BOOTSTRAP},
