@@ -115,7 +115,7 @@ def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
             sync()
             full.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            loss2, _, _ = triplet_loss(tr.nets, b["images"], b["inputs"], b["K"], tr.method_cfg)
+            loss2, _, _ = triplet_loss(tr.nets, b["images"], b["inputs"], b["K"], tr.cfg.method)
             tr.optimizer.zero_grad(set_to_none=True)
             loss2.backward()
             sync()

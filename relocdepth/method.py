@@ -313,11 +313,12 @@ def _triplet_loss_fp32(
         else:
             T_cells = T.reshape(-1, 4, 4)
         n = T_cells.shape[0] // (B * 3)
-        T_a = boot.T_anchor.to(T.dtype).reshape(B * 3, 1, 4, 4).expand(B * 3, n, 4, 4).reshape(-1, 4, 4)
+        T_anchor = boot.T_anchor.to(T.dtype).reshape(B * 3, 4, 4)
+        T_a = T_anchor[:, None].expand(B * 3, n, 4, 4).reshape(-1, 4, 4)
         w_t = (1.0 / scene_depth)[:, None].expand(B, 3 * n).reshape(-1)
         boot_parts["L_anchor"] = relative_pose_consistency(T_cells, T_a, w_t).mean()
         with torch.no_grad():
-            t_a, r_a = geo.pose_errors(T_cons.detach().reshape(-1, 4, 4), boot.T_anchor.to(T.dtype).reshape(-1, 4, 4))
+            t_a, r_a = geo.pose_errors(T_cons.detach().reshape(-1, 4, 4), T_anchor)
             boot_diag.update({"anchor_trans": float(t_a.mean()), "anchor_rot_deg": float(r_a.mean())})
     K_t, K_s = flat(K[:, t_idx]), flat(K[:, s_idx])
     I_t, I_s = flat(images[:, t_idx]), flat(images[:, s_idx])

@@ -328,8 +328,6 @@ class Trainer:
     loss_module: Any  # the (DDP-wrapped) module whose forward returns triplet_loss(...)
     optimizer: Any
     scaler: Any
-    method_cfg: Any
-    model_cfg: Any
     log: TrainLog
     gt_poses: Any = None  # (N, 4, 4) float32 tensor of the research oracle, else None
     gt_depths: Any = None  # list of (H, W) float32 depth maps of the research oracle, else None
@@ -451,10 +449,9 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     np.random.seed(cfg.seed % 2**32)
     sampler = TripletSampler(frames.keys(), cfg.sampler, dist.rank, dist.world_size, parallax)
     data = TripletData(frames, cfg.augment, two_view=cfg.bootstrap == "essential")
-    method_cfg, model_cfg = cfg.method, cfg.model
     from relocdepth.models import build_networks
 
-    nets = build_networks(model_cfg).to(device)
+    nets = build_networks(cfg.model).to(device)
     if cfg.channels_last:
         nets = nets.to(memory_format=torch.channels_last)
     optimizer = _adam(nets, cfg)
@@ -464,7 +461,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     if ck is not None:
         _restore(ck, nets, optimizer, scaler, state)
         log.info("resuming %s at step %d (epoch %d, triplet %d)", ck_path, state.step, state.epoch, state.position)
-    loss_module = _LossModule.build(nets, method_cfg)
+    loss_module = _LossModule.build(nets, cfg.method)
     if dist.enabled:
         from torch.nn.parallel import DistributedDataParallel as DDP
 
@@ -481,7 +478,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs,
                     log_every=cfg.log_every, max_seconds=None if cfg.max_minutes is None else 60.0 * cfg.max_minutes)
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
-                 method_cfg, model_cfg, tlog, gt_poses, gt_depths)
+                 tlog, gt_poses, gt_depths)
     return tr, state
 
 
@@ -567,7 +564,7 @@ def checkpoint(tr: Trainer, state: RunState) -> None:
         "manifest_hash": tr.frames.manifest_hash,
         "dataset": {"name": tr.frames.name, "root": tr.frames.root},
         "input_size": [W, H], "intrinsics": f0.intrinsics.scaled(W, H).to_dict(), "intrinsics_policy": "resize",
-        "model": asdict(tr.model_cfg), "method": asdict(tr.method_cfg), "train": tr.cfg.to_dict(),
+        "model": asdict(tr.cfg.model), "method": asdict(tr.cfg.method), "train": tr.cfg.to_dict(),
         "world_size": tr.dist.world_size,
         "counters": {"nonfinite_skipped": state.nonfinite_skipped, "samples_skipped": state.samples_skipped},
         "alignment": None,
@@ -638,7 +635,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
     from relocdepth.anchors import build_anchors as build
     from relocdepth.anchors import network_depth
 
-    m = tr.method_cfg
+    m = tr.cfg.method
     a = build(tr.frames, lambda _ix, ims: network_depth(tr.nets.depth, ims, tr.device, m.min_depth, m.max_depth),
               tr.cfg.size)
     state.anchors, state.anchors_step = torch.from_numpy(a.T_wc), state.step
@@ -710,7 +707,7 @@ def log_images(tr: Trainer, state: RunState, b: dict[str, Any]) -> None:
 
     was_training = tr.nets.training
     try:
-        view = preview(tr.nets, b["images"], b["inputs"], b["K"], tr.method_cfg)
+        view = preview(tr.nets, b["images"], b["inputs"], b["K"], tr.cfg.method)
     finally:
         tr.nets.train(was_training)
     tr.log.images(state.step, {f"train/{k}": v for k, v in view.items()})
