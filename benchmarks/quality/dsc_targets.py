@@ -57,8 +57,8 @@ def main() -> None:
     test = V.Sequence("test", [ds.read_image(r) for r in te], te[0].intrinsics,
                       np.stack([ds.read_pose(r) for r in te]), [ds.read_depth(r) for r in te])
     if args.targets == "vo":
-        depths, _ = V.network_depth(args.checkpoint, seqs)
-        depth_te = V.network_depth(args.checkpoint, [test])[0][0]
+        maps, _ = V.network_depth(args.checkpoint, [*seqs, test])  # one load of the checkpoint
+        depths, depth_te = maps[:-1], maps[-1]
         T_target = np.concatenate(V.odometry_world(seqs, depths, VOConfig()).world)
     else:
         depths, depth_te = [s.depth_gt for s in seqs], test.depth_gt

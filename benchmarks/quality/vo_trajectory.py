@@ -100,9 +100,10 @@ def network_depth(checkpoint: str, seqs: list[Sequence]) -> tuple[list[list[np.n
     return out, (time.process_time() - t0) / max(n, 1)
 
 
-def ate(T_est: np.ndarray, T_gt: np.ndarray) -> dict:
-    """Sim(3)-aligned camera-centre errors (m): RMSE, median; and the fitted scale."""
-    fit = fit_sim3(T_est, T_gt)
+def ate(T_est: np.ndarray, T_gt: np.ndarray, fit: EG.Sim3 | None = None) -> dict:
+    """Sim(3)-aligned camera-centre errors (m): RMSE, median; and the fitted scale (``fit``: the
+    alignment when it is already fitted)."""
+    fit = fit or fit_sim3(T_est, T_gt)
     s, R, t = fit.scale, fit.R, fit.t
     err = np.linalg.norm(EG.apply_sim3(s, R, t, T_est)[:, :3, 3] - T_gt[:, :3, 3], axis=1)
     return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "median_m": float(np.median(err)),
@@ -128,8 +129,8 @@ def run(seqs: list[Sequence], depths: list[list[np.ndarray]], cfg: VOConfig, k: 
         out["registration_s_per_link"] = w.reg_s / links
     T_est, T_gt = np.concatenate(world), np.concatenate([s.T_gt for s in seqs])
     names = [s.name for s in seqs for _ in s.images]
-    joint = ate(T_est, T_gt)
     fit = fit_sim3(T_est, T_gt)
+    joint = ate(T_est, T_gt, fit)
     s_, R_, t_ = fit.scale, fit.R, fit.t
     T_al = EG.apply_sim3(s_, R_, t_, T_est)
     out["joint"] = joint | {"relative": M.relative_pose_errors(T_al, T_gt, names, k)}
