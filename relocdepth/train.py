@@ -826,11 +826,13 @@ def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfi
                  device=str(tr.device), pretrained=tr.cfg.model.pretrained)
     t0 = time.perf_counter()
     try:
+        # The final checkpoint is written inside the handler too, so that a second Ctrl-C aborts it
+        # even where the process started with SIGINT ignored (a background job of a script).
         with _StopRequest() as stop:
             run_loop(tr, state, stop)
-        broadcast_buffers(tr.dist, tr.nets)  # every rank ends with the checkpoint's BatchNorm statistics
-        if state.stop != "diverged" and (state.last_checkpoint is None or state.step % tr.cfg.checkpoint_every):
-            checkpoint(tr, state)
+            broadcast_buffers(tr.dist, tr.nets)  # every rank ends with the checkpoint's BatchNorm statistics
+            if state.stop != "diverged" and (state.last_checkpoint is None or state.step % tr.cfg.checkpoint_every):
+                checkpoint(tr, state)
         tr.log.event("stop", state.step, reason=state.stop)
     finally:
         tr.log.close()
