@@ -3,7 +3,7 @@
 On the default demo scene (synth seed 0, 3 sequences x 150 frames, 128x96; ingested once), or on
 a real walk-through (``--data PATH``: a folder of images/, depth/, poses.txt, K.txt such as
 ``shared/data/hololens-office``, laid out as a 7-Scenes scene whose last ``--walk-test`` frames
-are the test sequence, trained at ``--size``), each configuration (row) is trained from scratch
+are the test sequence, or ``--walk-blocks`` blocks of them inside the walk; trained at ``--size``), each configuration (row) is trained from scratch
 for a wall-clock budget, then evaluated with the paper's protocol (``reloc evaluate``). Writes
 ``quality.md`` (a markdown table) and ``quality.json`` (the numbers, the recipes, the rung each
 row reaches) to ``--out``.
@@ -125,7 +125,7 @@ def run_to_end(args: list[str], threads: int, logfile: Path) -> None:
         raise RuntimeError(f"reloc {' '.join(args[:1])} failed (exit {rc}); see {logfile}")
 
 
-def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: int = 30) -> Path:
+def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: int = 30, walk_blocks: int = 1) -> Path:
     """Render the demo scene (or lay out the walk-through) and ingest it once; returns the shards."""
     from relocdepth.ingest.run import IngestConfig, ingest
 
@@ -142,8 +142,9 @@ def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: i
         sys.path.insert(0, str(Path(__file__).parent))
         from walkthrough import lay_out
 
-        log.info("laying out %s as a 7-Scenes scene in %s (last %d frames: test)", walk, scene, walk_test)
-        lay_out(walk, scene, walk_test)
+        log.info("laying out %s as a 7-Scenes scene in %s (%d test frames in %d block(s))", walk, scene,
+                 walk_test, walk_blocks)
+        lay_out(walk, scene, walk_test, walk_blocks)
     else:
         log.info("rendering the demo scene into %s", scene)
         generate_scene(scene, SynthConfig(**SCENE))
@@ -321,6 +322,8 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=None,
                     help="a walk-through folder (images/, depth/, poses.txt, K.txt) instead of the demo scene")
     ap.add_argument("--walk-test", type=int, default=30, help="with --data: the last N frames are the test sequence")
+    ap.add_argument("--walk-blocks", type=int, default=1,
+                    help="with --data: the test frames in B blocks spread inside the walk (default 1: its end)")
     ap.add_argument("--size", default=None, help=f"training size WxH (default {SIZE}; 192x128 suits 3:2 walk-throughs)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
@@ -330,14 +333,15 @@ def main() -> None:
     if unknown or not names or a.budget_min <= 0 or a.threads < 1 or a.parallel < 1:
         ap.error(f"rows must be among {', '.join(RECIPES)} (got {unknown or names}); budget and threads > 0")
     a.out.mkdir(parents=True, exist_ok=True)
-    shards = prepare_data(a.out, a.threads, a.data, a.walk_test)
+    shards = prepare_data(a.out, a.threads, a.data, a.walk_test, a.walk_blocks)
     rows = run_rows(names, shards, a.out, a.budget_min, a.threads, a.redo, size, a.data is not None, a.parallel)
     ref = rows[names[0]]["references"]
     for r in rows.values():
         r["rung"], r["next_rung_blocked_by"] = rung(r["metrics"], ref)
     md = table(rows, ref, size)
     cmd = "python benchmarks/quality/run.py " + " ".join(sys.argv[1:])
-    data = (f"walk-through {a.data}, last {a.walk_test} frames test" if a.data is not None
+    where = "last" if a.walk_blocks == 1 else f"in {a.walk_blocks} blocks inside the walk:"
+    data = (f"walk-through {a.data}, {where} {a.walk_test} frames test" if a.data is not None
             else "demo scene: synth seed 0, 150 frames x 3 sequences")
     (a.out / "quality.md").write_text(
         f"`{cmd.strip()}` ({data}; trained at {size}; {a.threads} torch thread(s), {a.parallel} row(s) at once; "
