@@ -173,12 +173,6 @@ def relative_pose_images(image_a: np.ndarray, image_b: np.ndarray, K: np.ndarray
     return relative_pose_essential(pa, pb, K, ransac_px, method=method)
 
 
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle (degrees) of a rotation matrix."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
 # Points per pair that the training bootstrap keeps for scaling the translation (padded with NaN).
 BOOTSTRAP_POINTS = 64
 # Below this median parallax (px: the tracks' motion that the recovered rotation does not explain)

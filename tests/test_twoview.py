@@ -9,13 +9,13 @@ import torch
 
 from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
+from relocdepth.eval_geometry import rotation_angle_deg
 from relocdepth.geometry import relative_pose
 from relocdepth.synth import SynthConfig, build_scene, camera_paths, render
 from relocdepth.twoview import (
     homography_residual,
     relative_pose_essential,
     relative_pose_images,
-    rotation_angle_deg,
 )
 
 INTR = Intrinsics(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
@@ -49,7 +49,7 @@ def _pair(move: np.ndarray, turn_deg: tuple[float, float, float]) -> tuple[np.nd
 def test_recovers_rendered_relative_pose(move: np.ndarray, turn: tuple[float, float, float]) -> None:
     img_a, img_b, T_a, T_b = _pair(move, turn)
     T_ba = relative_pose(torch.from_numpy(T_a)[None], torch.from_numpy(T_b)[None])[0].numpy()
-    assert rotation_angle_deg(T_ba[:3, :3]) > 2.0  # the pair does rotate: the test can fail
+    assert rotation_angle_deg(T_ba[:3, :3]) > 1.5  # the pair does rotate (2 deg or more): the test can fail
     pose = relative_pose_images(img_a, img_b, INTR.K())
     err_R = rotation_angle_deg(pose.R.T @ T_ba[:3, :3])
     err_t = _angle_deg(pose.t, T_ba[:3, 3])
