@@ -1,18 +1,25 @@
-"""Absolute anchors for the DSC network from the training frames' own odometry (not in the paper).
+"""Absolute anchors for the DSC network, built from the training frames themselves (not in the paper).
 
 The bootstrap teaches the DSC network relative poses; what it must learn is where each image was
-taken, in one world. Once the depth network has learned (the bootstrap's warps teach it in a few
-hundred steps), keyframe odometry over each training sequence with that depth, and registration
-of the sequences into the first one's world (:mod:`relocdepth.vo`), give every training frame a
-world pose without ground truth; the trainer pulls each DSC cell's pose towards it
-(:class:`relocdepth.method.Bootstrap`, ``L_anchor``). The world is the first training sequence's
-first frame, in the depth network's units at the time of the build.
+taken, in one world. Two sources give every training frame a world pose without ground truth; the
+trainer pulls each DSC cell's pose towards its frame's (:class:`relocdepth.method.Bootstrap`,
+``L_anchor``):
+
+- ``vo`` (:func:`build_anchors`): once the depth network has learned (the bootstrap's warps teach
+  it in a few hundred steps), keyframe odometry over each training sequence with that depth, and
+  registration of the sequences into the first one's world (:mod:`relocdepth.vo`). The world is the
+  first training sequence's first frame, in the depth network's units at the time of the build.
+- ``linked`` (:func:`build_linked_anchors`): the DSC network's own poses, every sequence after the
+  first registered into the first one's world by wide-baseline links between similar frames. The
+  bootstrap makes the DSC's poses right *within* each sequence (on the demo scene 1.3-1.7 deg after
+  a rotation fit per sequence) while each sequence sits in a world of its own (4.2 deg from their
+  mean); the links put them in one, and the anchors keep the network's own world and units.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,7 +28,15 @@ import torch
 
 from relocdepth.data import ImageFrames, scale_and_crop
 from relocdepth.models import disp_to_depth
-from relocdepth.vo import VOConfig, world_trajectory
+from relocdepth.vo import VOConfig, join_sequences, world_trajectory
+
+# Links are matched on the stored images, down-sized to at most this width: SIFT needs the pixels
+# (demo scene, nearest frames of two training paths, median rotation error of a link against
+# ground truth: 14.6 deg at 128x96, 5.0 at 320x240, 2.1 at 640x480).
+LINK_MAX_WIDTH = 640
+# At most this many query frames per registered sequence (each with VOConfig.links_per_frame links,
+# ~0.2 s each at 640x480): a long sequence is queried sparser.
+LINK_QUERIES = 75
 
 
 @dataclass
@@ -86,3 +101,96 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
         T[ix] = T_seq.astype(np.float32)
     return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
                    [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0)
+
+
+# World poses (N, 4, 4) and depth maps (H, W) of frames, from their images at the training size and
+# their intrinsics there (N, 3, 3).
+PosesOf = Callable[[list[np.ndarray], np.ndarray], tuple[np.ndarray, list[np.ndarray]]]
+
+
+@torch.no_grad()
+def network_poses(nets: Any, images: list[np.ndarray], K: np.ndarray, device: Any,
+                  batch: int = 16) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The networks' poses ``T_wc (N, 4, 4)`` float64 and depth maps ``(H, W)`` of RGB uint8
+    ``images`` with intrinsics ``K (N, 3, 3)``: what :func:`relocdepth.method.predict` gives
+    (eval mode, median over the DSC cells)."""
+    from relocdepth.method import predict
+
+    T, depth = [], []
+    for i in range(0, len(images), batch):
+        x = torch.from_numpy(np.stack(images[i:i + batch])).permute(0, 3, 1, 2).to(device).float() / 255.0
+        out = predict(nets, x, torch.as_tensor(K[i:i + batch], dtype=torch.float32, device=device))
+        T.append(out["T_wc"].double().cpu().numpy())
+        depth += list(out["depth"][:, 0].float().cpu().numpy())
+    return np.concatenate(T), depth
+
+
+class _LinkImages:
+    """A sequence's stored images at the links' size, read when asked (a few cached): a long
+    dataset's images at 640x480 do not all fit in memory."""
+
+    def __init__(self, frames: ImageFrames, ix: list[int], width: int, height: int) -> None:
+        self.frames, self.ix, self.size = frames, ix, (width, height)
+        self._cache: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.ix)
+
+    def __getitem__(self, j: int) -> np.ndarray:
+        if j not in self._cache:
+            import cv2
+
+            if len(self._cache) >= 64:
+                self._cache.pop(next(iter(self._cache)))
+            img = self.frames.read_image(self.ix[j])
+            if (img.shape[1], img.shape[0]) != self.size:
+                img = cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
+            self._cache[j] = img
+        return self._cache[j]
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        return (self[j] for j in range(len(self)))
+
+
+def link_size(width: int, height: int) -> tuple[int, int]:
+    """The size links are matched at: the stored size, at most :data:`LINK_MAX_WIDTH` wide."""
+    if width <= LINK_MAX_WIDTH:
+        return width, height
+    return LINK_MAX_WIDTH, max(1, round(height * LINK_MAX_WIDTH / width))
+
+
+def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, int],
+                         cfg: VOConfig | None = None) -> Anchors:
+    """World poses of every training frame: ``poses``' (in the trainer the networks',
+    :func:`network_poses`, of the images at ``size`` (W, H), un-augmented), each sequence after the
+    first registered into the first one's world by links between similar frames matched on the
+    stored images (:func:`relocdepth.vo.join_sequences`; translations' lengths from ``poses``' depth
+    maps, so in the networks' units). ``keyframes`` and ``lost`` are 0 (no odometry)."""
+    import cv2
+
+    t0 = time.perf_counter()
+    W, H = size
+    seqs = sequences_of(frames)
+    T_seq, link_images, link_K, link_depth = [], [], [], []
+    for ix in seqs:
+        pairs = [scale_and_crop(frames.read_image(i), frames.frames[i].intrinsics, W, H, 1.0, 0.0, 0.0) for i in ix]
+        T, depth = poses([p[0] for p in pairs], np.stack([p[1].K() for p in pairs]))
+        intr = frames.frames[ix[0]].intrinsics
+        lw, lh = link_size(intr.width, intr.height)
+        T_seq.append(T)
+        link_images.append(_LinkImages(frames, ix, lw, lh))
+        link_K.append(intr.scaled(lw, lh).K())
+        link_depth.append(lambda j, d=depth, s=(lw, lh): cv2.resize(d[j], s, interpolation=cv2.INTER_LINEAR))
+    base = cfg or VOConfig()
+    regs, world = [], [T_seq[0]]
+    for k in range(1, len(seqs)):  # one sequence at a time: each queried at most LINK_QUERIES times
+        every = max(base.query_every, -(-len(seqs[k]) // LINK_QUERIES))
+        cfg_k = VOConfig(**{**base.__dict__, "query_every": every})
+        r, w = join_sequences([link_images[0], link_images[k]], [link_K[0], link_K[k]], [T_seq[0], T_seq[k]],
+                              [link_depth[0], link_depth[k]], cfg_k)
+        regs += r
+        world.append(w[1])
+    out = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
+    for ix, T in zip(seqs, world):
+        out[ix] = T.astype(np.float32)
+    return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0)

@@ -49,7 +49,7 @@ CONFIG_NAME = "config.json"
 # Sources of the relative-pose bootstrap (TrainConfig.bootstrap); "oracle-gt" reads ground truth.
 BOOTSTRAP_SOURCES = ("off", "posenet", "essential", "oracle-gt")
 # Sources of the DSC network's absolute anchors (TrainConfig.anchor).
-ANCHOR_SOURCES = ("off", "vo")
+ANCHOR_SOURCES = ("off", "vo", "linked")
 
 
 # The configs a TrainConfig is composed of, by their key in it (and in a run's config.json).
@@ -94,11 +94,13 @@ class TrainConfig:
     bootstrap_fade_steps: int = 500
     w_bootstrap: float = 1.0
     # Absolute anchors for the DSC network (not in the paper; README, fidelity): at step anchor_step
-    # (and every anchor_every steps after, 0: once) the training frames' own trajectory is built by
-    # keyframe odometry (relocdepth.vo: the bootstrap's two-view geometry with the depth network's
-    # depth, sequences registered into one world), and every DSC cell's pose is pulled towards its
-    # frame's pose there with weight w_anchor, for as long as the bootstrap lasts (fading with it).
-    # "vo" needs a bootstrap: depth must have learned before odometry can use it.
+    # (and every anchor_every steps after, 0: once) every training frame gets a world pose without
+    # ground truth (relocdepth.anchors), and every DSC cell's pose is pulled towards its frame's
+    # pose there with weight w_anchor, for as long as the bootstrap lasts (fading with it). "vo":
+    # keyframe odometry of each sequence (the bootstrap's two-view geometry with the depth
+    # network's depth) registered into one world; "linked": the DSC network's own poses, each
+    # sequence registered into the first one's world by links between similar frames. Both need a
+    # bootstrap: depth must have learned, and the anchors' weight fades with it.
     anchor: str = "off"
     anchor_step: int = 150
     anchor_every: int = 0
@@ -148,7 +150,8 @@ class TrainConfig:
         if self.anchor not in ANCHOR_SOURCES:
             raise UserError(f"--anchor must be one of {', '.join(ANCHOR_SOURCES)}, not {self.anchor!r}")
         if self.anchor != "off" and self.bootstrap == "off":
-            raise UserError(f"--anchor {self.anchor} needs a --bootstrap (depth learns first, odometry uses it)")
+            raise UserError(f"--anchor {self.anchor} needs a --bootstrap (the anchors need the depth it "
+                            "teaches first, and their weight fades with it)")
         if self.anchor_step < 0 or self.anchor_every < 0 or self.w_anchor < 0:
             raise UserError("--anchor-step, --anchor-every and --w-anchor must be >= 0")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
@@ -628,20 +631,24 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0,
 
 
 def build_anchors(tr: Trainer, state: RunState) -> None:
-    """Named step: the DSC's anchors from the training frames' odometry with the current depth
-    network (every rank builds the same ones: same weights, same frames)."""
+    """Named step: the DSC's anchors (``tr.cfg.anchor``) from the training frames with the current
+    networks (every rank builds the same ones: same weights, same frames)."""
     import torch
 
-    from relocdepth.anchors import build_anchors as build
-    from relocdepth.anchors import network_depth
+    from relocdepth import anchors as A
 
     m = tr.cfg.method
-    a = build(tr.frames, lambda _ix, ims: network_depth(tr.nets.depth, ims, tr.device, m.min_depth, m.max_depth),
-              tr.cfg.size)
+    if tr.cfg.anchor == "linked":
+        a = A.build_linked_anchors(tr.frames, lambda ims, K: A.network_poses(tr.nets, ims, K, tr.device),
+                                   tr.cfg.size)
+        how = f"the DSC's own poses of {len(a.T_wc)} frames"
+    else:
+        a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
+                                                                        m.max_depth), tr.cfg.size)
+        how = f"odometry of {len(a.T_wc)} frames ({a.keyframes} keyframes, {a.lost} lost)"
     state.anchors, state.anchors_step = torch.from_numpy(a.T_wc), state.step
     reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
-    log.info("anchors at step %d: odometry of %d frames (%d keyframes, %d lost), registration inliers %s, %.1f s",
-             state.step, len(a.T_wc), a.keyframes, a.lost, reg, a.seconds)
+    log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
                  registration=[list(r) for r in a.registration])
 

@@ -293,7 +293,17 @@ def world_trajectory(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndar
     t0 = time.process_time()
     trajs = [chain(im, k, d, cfg) for im, k, d in zip(images, K, depth)]
     vo_s, t0 = time.process_time() - t0, time.process_time()
-    regs = [register(images[0], trajs[0].T_wc, K[0], depth[0], im, tr.T_wc, k, cfg)
-            for im, k, tr in zip(images[1:], K[1:], trajs[1:])]
-    world = [trajs[0].T_wc] + [reg.T @ tr.T_wc for reg, tr in zip(regs, trajs[1:])]
+    regs, world = join_sequences(images, K, [tr.T_wc for tr in trajs], depth, cfg)
     return World(trajs, regs, world, vo_s, time.process_time() - t0)
+
+
+def join_sequences(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndarray], T_wc: Sequence[np.ndarray],
+                   depth: Sequence[DepthSource], cfg: VOConfig = VOConfig()) -> tuple[list[Registration], list[np.ndarray]]:
+    """Sequences whose poses ``T_wc[i] (N_i, 4, 4)`` are each in a world of their own (the same
+    units: ``depth``'s), every one after the first registered into the first one's world
+    (:func:`register`); returns the registrations and every sequence's poses in that world."""
+    if not (len(images) == len(K) == len(T_wc) == len(depth)) or not images:
+        raise ValueError("join_sequences needs images, K, poses and depth for each of >= 1 sequences")
+    regs = [register(images[0], T_wc[0], K[0], depth[0], im, T, k, cfg)
+            for im, k, T in zip(images[1:], K[1:], T_wc[1:])]
+    return regs, [np.asarray(T_wc[0])] + [reg.T @ T for reg, T in zip(regs, T_wc[1:])]

@@ -183,3 +183,65 @@ def test_trainer_builds_anchors_checkpoints_and_resumes_them(synth_shards: Path,
     log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
     assert [d["step"] for d in log if d.get("event") == "anchors"] == [1]  # restored, not rebuilt
     assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
+
+
+@pytest.fixture(scope="module")
+def shards_320(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The demo scene stored at 320x240 (links need more pixels than the 128x96 test scene has)."""
+    from relocdepth.ingest.run import IngestConfig, ingest
+
+    from relocdepth.synth import SynthConfig, generate_scene
+
+    root = tmp_path_factory.mktemp("scene320")
+    generate_scene(root / "scene", SynthConfig(seed=0, frames=24, width=320, height=240))
+    ingest([root / "scene"], root / "shards", IngestConfig())
+    return root / "shards"
+
+
+def test_linked_anchors_put_every_sequence_in_the_first_ones_world(shards_320: Path) -> None:
+    """Poses right within each sequence, each sequence in a world of its own (the second moved by a
+    known 10 deg / 20 cm): the linked anchors keep the first sequence's poses as given, and put the
+    second's in its world, each frame's at its own index; the networks see the training size, the
+    links the stored one."""
+    from relocdepth.anchors import build_linked_anchors, sequences_of
+    from relocdepth.data import ImageFrames
+
+    frames = ImageFrames.open(shards_320)
+    T_gt, depth_gt = _gt(shards_320, frames)
+    seqs = sequences_of(frames)
+    world = np.linalg.inv(T_gt[seqs[0][0]])
+    own = [np.eye(4)] + [np.eye(4) for _ in seqs[1:]]
+    own[1][:3, :3] = geo.so3_exp(torch.tensor([[0.0, 0.17, 0.03]], dtype=torch.float64))[0].numpy()
+    own[1][:3, 3] = [0.2, 0.0, -0.1]
+    calls = iter(range(len(seqs)))
+
+    def poses(images: list[np.ndarray], K: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        k = next(calls)
+        assert len(images) == len(K) == len(seqs[k]) and images[0].shape == (96, 128, 3)
+        return own[k] @ world @ T_gt[seqs[k]], [depth_gt[i] for i in seqs[k]]
+
+    a = build_linked_anchors(frames, poses, (128, 96))
+    assert a.T_wc.shape == (len(frames), 4, 4) and a.T_wc.dtype == np.float32
+    assert len(a.registration) == len(seqs) - 1 and a.registration[0][0] >= 3
+    assert np.allclose(a.T_wc[seqs[0]], (world @ T_gt[seqs[0]]).astype(np.float32), atol=1e-5)
+    ix = seqs[1]
+    truth = world @ T_gt[ix]
+    before = rotation_angle_deg(np.swapaxes((own[1] @ truth)[:, :3, :3], -1, -2) @ truth[:, :3, :3])
+    err_r = rotation_angle_deg(np.swapaxes(a.T_wc[ix, :3, :3], -1, -2) @ truth[:, :3, :3])
+    err_t = np.linalg.norm(a.T_wc[ix, :3, 3] - truth[:, :3, 3], axis=1)
+    assert before.min() > 9.0 and err_r.max() < 3.0 and err_t.max() < 0.05, (err_r.max(), err_t.max())
+
+
+def test_trainer_builds_linked_anchors_from_its_own_networks(synth_shards: Path, tmp_path: Path) -> None:
+    from relocdepth import checkpoint as ckpt_io
+    from relocdepth.train import train
+
+    run = tmp_path / "run"
+    train(synth_shards, run, _cfg(anchor="linked", max_steps=2))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    built = [d for d in log if d.get("event") == "anchors"]
+    assert [d["step"] for d in built] == [1] and built[0]["keyframes"] == 0  # no odometry
+    assert len(built[0]["registration"]) == 1  # the second training sequence, linked to the first
+    assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
+    T = ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["T_wc"]
+    assert T.shape == (48, 4, 4) and torch.isfinite(T).all() and not torch.allclose(T[0], torch.eye(4))

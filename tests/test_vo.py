@@ -153,3 +153,24 @@ def test_world_trajectory_puts_every_sequence_in_the_first_ones_world(rendered: 
         assert rotation_angle_deg(np.swapaxes(est[:, :3, :3], -1, -2) @ truth[:, :3, :3]).max() < 3.0
     with pytest.raises(ValueError):
         world_trajectory([rendered["img_a"]], [K, K], [rendered["depth_a"].__getitem__])
+
+
+def test_join_sequences_puts_poses_of_other_worlds_in_the_first_ones(rendered: dict) -> None:
+    """Each sequence's poses right within themselves but in a world of its own (B's moved by a
+    known 12 deg / 30 cm transform): the links put B's in A's world, the first stays as given."""
+    from relocdepth.vo import join_sequences
+
+    K = INTR.K()
+    world_of_a = np.linalg.inv(rendered["T_a"][0])
+    T_a = world_of_a @ rendered["T_a"]
+    elsewhere = _rigid((4.0, 10.0, -5.0), (0.2, -0.1, 0.2))  # B's own world
+    T_b_own = elsewhere @ world_of_a @ rendered["T_b"]
+    regs, world = join_sequences([rendered["img_a"], rendered["img_b"]], [K, K], [T_a, T_b_own],
+                                 [rendered["depth_a"].__getitem__, rendered["depth_b"].__getitem__])
+    assert len(regs) == 1 and regs[0].inliers >= 3 and np.allclose(world[0], T_a)
+    truth = world_of_a @ rendered["T_b"]
+    assert rotation_angle_deg(np.swapaxes(T_b_own[:, :3, :3], -1, -2) @ truth[:, :3, :3]).min() > 10  # can fail
+    assert np.linalg.norm(world[1][:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.05
+    assert rotation_angle_deg(np.swapaxes(world[1][:, :3, :3], -1, -2) @ truth[:, :3, :3]).max() < 3.0
+    with pytest.raises(ValueError):
+        join_sequences([rendered["img_a"]], [K, K], [T_a], [rendered["depth_a"].__getitem__])
