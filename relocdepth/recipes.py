@@ -44,6 +44,9 @@ RECIPES: dict[str, dict[str, Any]] = {
     # built at step 150 and rebuilt every 250 steps (README, Training; Quality trial 14: a better
     # absolute pose, a steadier relative one up to ~600 steps and a worse one after, the same depth).
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250},
+    # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
+    # into one world (built once its relative poses are right, step 600, then every 300 steps).
+    "cpu-linked": {**_CPU, **_BOOTSTRAP, "anchor": "linked", "anchor_step": 600, "anchor_every": 300},
     # What `reloc demo` trains (its minutes end well inside the bootstrap).
     "demo": {**_CPU, **_BOOTSTRAP},
 }

@@ -140,3 +140,14 @@ def test_checkpoint_with_a_flat_config_resumes_with_its_values(synth_shards: Pat
     assert (saved.sampler.window, saved.seed, saved.lr, saved.method.w_c) == (4, 5, 0.0003, 0.05)  # the run's
     nets, meta = ckpt_io.load_for_inference(run)
     assert meta["step"] == 2 and hasattr(nets, "dsc")
+
+
+def test_every_recipe_is_a_valid_config_that_says_what_it_sets() -> None:
+    from relocdepth.recipes import RECIPES
+
+    for name, options in RECIPES.items():
+        cfg = TrainConfig.from_values(TrainConfig.values_of(recipe(name)))
+        values = cfg.values()
+        for key, value in TrainConfig.values_of(options).items():
+            assert values[key] == value, (name, key)
+    assert TrainConfig.from_values(TrainConfig.values_of(recipe("cpu-linked"))).anchor == "linked"

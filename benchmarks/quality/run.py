@@ -89,6 +89,8 @@ RECIPES: dict[str, list[str]] = {
     "cpu-bootstrap-no-dsc": ["--recipe", "cpu-bootstrap", "--no-dsc"],
     # `cpu-anchored`: the bootstrap recipe with the DSC's absolute anchors from odometry.
     "cpu-anchored": ["--recipe", "cpu-anchored"],
+    # `cpu-linked`: the bootstrap recipe with anchors from the DSC's own poses, sequences linked.
+    "cpu-linked": ["--recipe", "cpu-linked"],
 }
 # A walk-through moves ~10 cm per frame (hololens-office), 7-Scenes ~0.7 cm: its window is in
 # frames too, so rows on it use +-2 (last option wins).
