@@ -178,10 +178,16 @@ class TripletData:
     read or decoded (the trainer counts it and goes on). With ``two_view``, also the essential-matrix
     bootstrap's pairs from the middle frame to each source (``relocdepth.twoview.bootstrap_pair`` on
     the un-jittered images): ``two_view_T (2, 4, 4)``, ``two_view_points (2, N, 3)``, ``two_view_ok (2,)``.
+    With ``track_width`` the pairs are tracked on the stored images down-sized to at most that
+    width (0: on the training images), their points mapped into the middle frame's crop (NaN rows
+    where they fall outside it), and the parallax threshold scaled by the width ratio (the same
+    pairs count as rotation only).
     """
 
-    def __init__(self, frames: ImageFrames, cfg: AugmentConfig, two_view: bool = False) -> None:
-        self.frames, self.cfg, self.two_view = frames, cfg, two_view
+    def __init__(self, frames: ImageFrames, cfg: AugmentConfig, two_view: bool = False, track_width: int = 0) -> None:
+        if track_width < 0:
+            raise ValueError(f"track_width must be >= 0, not {track_width}")
+        self.frames, self.cfg, self.two_view, self.track_width = frames, cfg, two_view, track_width
 
     def __getitem__(self, t: Triplet) -> dict[str, Any]:
         cfg = self.cfg
@@ -189,7 +195,7 @@ class TripletData:
         idx = (t.source_a, t.target, t.source_b)
         geo = [(rng.uniform(cfg.scale_min, cfg.scale_max), rng.random(), rng.random()) for _ in idx]
         shared = draw_jitter(rng, cfg)
-        images, inputs, Ks = [], [], []
+        images, inputs, Ks, raws = [], [], [], []
         boxes = [crop_box(cfg.width, cfg.height, *g) for g in geo]
         for i, (scale, fx0, fy0) in zip(idx, geo):
             f = self.frames.frames[i]
@@ -197,6 +203,7 @@ class TripletData:
                 raw = self.frames.read_image(i)
             except (OSError, ValueError) as e:
                 return {"skipped": f.key, "error": str(e)}
+            raws.append(raw)
             img, k = scale_and_crop(raw, f.intrinsics, cfg.width, cfg.height, scale, fx0, fy0)
             jit = draw_jitter(rng, cfg) if cfg.jitter_per_image else shared
             images.append(img)
@@ -211,13 +218,56 @@ class TripletData:
             "is_global": t.is_global,
         }
         if self.two_view:
-            from relocdepth.twoview import bootstrap_pair
-
-            pairs = [bootstrap_pair(images[1], images[i], Ks[1], Ks[i]) for i in (0, 2)]
+            pairs = (self._tracked_pairs(idx, raws, boxes[1]) if self.track_width
+                     else [_bootstrap_pair(images[1], images[i], Ks[1], Ks[i]) for i in (0, 2)])
             out["two_view_T"] = np.stack([p[0] for p in pairs])
             out["two_view_points"] = np.stack([p[1] for p in pairs])
             out["two_view_ok"] = np.array([p[2] for p in pairs])
         return out
+
+
+    def _tracked_pairs(self, idx: tuple[int, int, int], raws: list[np.ndarray],
+                       box: tuple[int, int, int, int]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+        """The bootstrap's pairs tracked on the stored images at ``track_width``, the points in
+        the middle frame's crop (``box``: its resized size and corner)."""
+        import cv2
+
+        from relocdepth.twoview import BOOTSTRAP_MIN_PARALLAX_PX
+
+        imgs, Ks = [], []
+        for i, raw in zip(idx, raws):
+            intr = self.frames.frames[i].intrinsics
+            tw = min(self.track_width, raw.shape[1])
+            th = max(1, round(raw.shape[0] * tw / raw.shape[1]))
+            imgs.append(raw if (tw, th) == (raw.shape[1], raw.shape[0])
+                        else cv2.resize(raw, (tw, th), interpolation=cv2.INTER_AREA))
+            Ks.append(intr.scaled(tw, th).K())
+        th, tw = imgs[1].shape[:2]
+        threshold = BOOTSTRAP_MIN_PARALLAX_PX * tw / self.cfg.width
+        pairs = [_bootstrap_pair(imgs[1], imgs[i], Ks[1], Ks[i], min_parallax_px=threshold) for i in (0, 2)]
+        for _, points, _ in pairs:
+            points[:] = track_to_crop(points, (tw, th), box, (self.cfg.width, self.cfg.height))
+        return pairs
+
+
+def track_to_crop(points: np.ndarray, track_size: tuple[int, int], box: tuple[int, int, int, int],
+                  size: tuple[int, int]) -> np.ndarray:
+    """``points (N, 3)`` (pixel x, y in an image resized to ``track_size`` (W, H); anything) with x, y
+    moved into the crop of ``box`` (:func:`crop_box`: resized size and corner) of ``size`` (W, H),
+    pixel centres as :meth:`Intrinsics.scaled` has them; rows falling outside the crop are NaN."""
+    (tw, th), (sw, sh, x0, y0), (W, H) = track_size, box, size
+    out = np.array(points, dtype=np.float32, copy=True)
+    out[:, 0] = (out[:, 0] + 0.5) * sw / tw - 0.5 - x0
+    out[:, 1] = (out[:, 1] + 0.5) * sh / th - 0.5 - y0
+    outside = ~((out[:, 0] >= 0) & (out[:, 0] <= W - 1) & (out[:, 1] >= 0) & (out[:, 1] <= H - 1))
+    out[outside] = np.nan
+    return out
+
+
+def _bootstrap_pair(*args: Any, **kw: Any) -> tuple[np.ndarray, np.ndarray, bool]:
+    from relocdepth.twoview import bootstrap_pair
+
+    return bootstrap_pair(*args, **kw)
 
 
 def collate(items: list[dict[str, Any]]) -> dict[str, Any]:

@@ -93,6 +93,9 @@ class TrainConfig:
     bootstrap_steps: int = 0
     bootstrap_fade_steps: int = 500
     w_bootstrap: float = 1.0
+    # The essential bootstrap tracks its pairs on the stored images down-sized to at most this width
+    # (0: on the training images): finer tracks give finer poses on real video (README, Training).
+    bootstrap_track_width: int = 0
     # Absolute anchors for the DSC network (not in the paper; README, fidelity): at step anchor_step
     # (and every anchor_every steps after, 0: once) every training frame gets a world pose without
     # ground truth (relocdepth.anchors), and every DSC cell's pose is pulled towards its frame's
@@ -156,6 +159,8 @@ class TrainConfig:
             raise UserError("--anchor-step, --anchor-every and --w-anchor must be >= 0")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
+        if self.bootstrap_track_width < 0:
+            raise UserError(f"--bootstrap-track-width must be >= 0 pixels, not {self.bootstrap_track_width}")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -451,7 +456,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     random.seed(cfg.seed)
     np.random.seed(cfg.seed % 2**32)
     sampler = TripletSampler(frames.keys(), cfg.sampler, dist.rank, dist.world_size, parallax)
-    data = TripletData(frames, cfg.augment, two_view=cfg.bootstrap == "essential")
+    data = TripletData(frames, cfg.augment, two_view=cfg.bootstrap == "essential", track_width=cfg.bootstrap_track_width)
     from relocdepth.models import build_networks
 
     nets = build_networks(cfg.model).to(device)

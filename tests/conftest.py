@@ -30,3 +30,17 @@ def synth_shards(synth_scene: Path, tmp_path_factory: pytest.TempPathFactory) ->
     out = tmp_path_factory.mktemp("shards") / "shards"
     ingest([synth_scene], out, IngestConfig(shard_size=16))
     return out
+
+
+@pytest.fixture(scope="session")
+def synth_shards_320(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The demo scene (3 sequences x 24 frames) stored at 320x240, ingested (read-only): for what
+    needs more pixels than the 128x96 test scene has (links, tracking on the stored images)."""
+    from relocdepth.ingest.run import IngestConfig, ingest
+
+    from relocdepth.synth import SynthConfig, generate_scene
+
+    root = tmp_path_factory.mktemp("scene320")
+    generate_scene(root / "scene", SynthConfig(seed=0, frames=24, width=320, height=240))
+    ingest([root / "scene"], root / "shards", IngestConfig())
+    return root / "shards"

@@ -185,20 +185,7 @@ def test_trainer_builds_anchors_checkpoints_and_resumes_them(synth_shards: Path,
     assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
 
 
-@pytest.fixture(scope="module")
-def shards_320(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The demo scene stored at 320x240 (links need more pixels than the 128x96 test scene has)."""
-    from relocdepth.ingest.run import IngestConfig, ingest
-
-    from relocdepth.synth import SynthConfig, generate_scene
-
-    root = tmp_path_factory.mktemp("scene320")
-    generate_scene(root / "scene", SynthConfig(seed=0, frames=24, width=320, height=240))
-    ingest([root / "scene"], root / "shards", IngestConfig())
-    return root / "shards"
-
-
-def test_linked_anchors_put_every_sequence_in_the_first_ones_world(shards_320: Path) -> None:
+def test_linked_anchors_put_every_sequence_in_the_first_ones_world(synth_shards_320: Path) -> None:
     """Poses right within each sequence, each sequence in a world of its own (the second moved by a
     known 10 deg / 20 cm): the linked anchors keep the first sequence's poses as given, and put the
     second's in its world, each frame's at its own index; the networks see the training size, the
@@ -206,8 +193,8 @@ def test_linked_anchors_put_every_sequence_in_the_first_ones_world(shards_320: P
     from relocdepth.anchors import build_linked_anchors, sequences_of
     from relocdepth.data import ImageFrames
 
-    frames = ImageFrames.open(shards_320)
-    T_gt, depth_gt = _gt(shards_320, frames)
+    frames = ImageFrames.open(synth_shards_320)
+    T_gt, depth_gt = _gt(synth_shards_320, frames)
     seqs = sequences_of(frames)
     world = np.linalg.inv(T_gt[seqs[0][0]])
     own = [np.eye(4)] + [np.eye(4) for _ in seqs[1:]]
