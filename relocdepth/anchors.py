@@ -30,10 +30,12 @@ from relocdepth.data import ImageFrames, scale_and_crop
 from relocdepth.models import disp_to_depth
 from relocdepth.vo import VOConfig, join_sequences, world_trajectory
 
-# Links are matched on the stored images, down-sized to at most this width: SIFT needs the pixels
-# (demo scene, nearest frames of two training paths, median rotation error of a link against
-# ground truth: 14.6 deg at 128x96, 5.0 at 320x240, 2.1 at 640x480).
-LINK_MAX_WIDTH = 640
+# Links are matched on the stored images resized to this width (up or down): SIFT needs the pixels.
+# Demo scene stored at 128x96, nearest frames of two training paths, median rotation error of a
+# link against ground truth: 14.6 deg as stored, 5.0 resized to 320x240, 2.1 to 640x480 (its
+# detector finds the small features only on the enlarged image; inliers of one registration 16 ->
+# 147 of 225).
+LINK_WIDTH = 640
 # At most this many query frames per registered sequence (each with VOConfig.links_per_frame links,
 # ~0.2 s each at 640x480): a long sequence is queried sparser.
 LINK_QUERIES = 75
@@ -127,7 +129,7 @@ def network_poses(nets: Any, images: list[np.ndarray], K: np.ndarray, device: An
 
 class _LinkImages:
     """A sequence's stored images at the links' size, read when asked (a few cached): a long
-    dataset's images at 640x480 do not all fit in memory."""
+    dataset's images at 640 px wide do not all fit in memory."""
 
     def __init__(self, frames: ImageFrames, ix: list[int], width: int, height: int) -> None:
         self.frames, self.ix, self.size = frames, ix, (width, height)
@@ -144,7 +146,8 @@ class _LinkImages:
                 self._cache.pop(next(iter(self._cache)))
             img = self.frames.read_image(self.ix[j])
             if (img.shape[1], img.shape[0]) != self.size:
-                img = cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
+                down = img.shape[1] > self.size[0]
+                img = cv2.resize(img, self.size, interpolation=cv2.INTER_AREA if down else cv2.INTER_LINEAR)
             self._cache[j] = img
         return self._cache[j]
 
@@ -153,10 +156,8 @@ class _LinkImages:
 
 
 def link_size(width: int, height: int) -> tuple[int, int]:
-    """The size links are matched at: the stored size, at most :data:`LINK_MAX_WIDTH` wide."""
-    if width <= LINK_MAX_WIDTH:
-        return width, height
-    return LINK_MAX_WIDTH, max(1, round(height * LINK_MAX_WIDTH / width))
+    """The size links are matched at: the stored aspect, :data:`LINK_WIDTH` wide."""
+    return LINK_WIDTH, max(1, round(height * LINK_WIDTH / width))
 
 
 def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, int],
@@ -164,7 +165,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     """World poses of every training frame: ``poses``' (in the trainer the networks',
     :func:`network_poses`, of the images at ``size`` (W, H), un-augmented), each sequence after the
     first registered into the first one's world by links between similar frames matched on the
-    stored images (:func:`relocdepth.vo.join_sequences`; translations' lengths from ``poses``' depth
+    stored images resized to :data:`LINK_WIDTH` (:func:`relocdepth.vo.join_sequences`; translations' lengths from ``poses``' depth
     maps, so in the networks' units). ``keyframes`` and ``lost`` are 0 (no odometry)."""
     import cv2
 
