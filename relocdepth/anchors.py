@@ -33,7 +33,7 @@ from relocdepth.vo import VOConfig, join_sequences, world_trajectory
 # Links are matched on the stored images resized to this width (up or down): SIFT needs the pixels.
 # Demo scene stored at 128x96, nearest frames of two training paths, median rotation error of a
 # link against ground truth: 14.6 deg as stored, 5.0 resized to 320x240, 2.1 to 640x480 (its
-# detector finds the small features only on the enlarged image; inliers of one registration 16 ->
+# detector finds the small features only on the enlarged image; inliers of one registration 51 ->
 # 147 of 225).
 LINK_WIDTH = 640
 # At most this many query frames per registered sequence (each with VOConfig.links_per_frame links,
