@@ -172,7 +172,8 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
-    T_seq, link_images, link_K, link_depth = [], [], [], []
+    T_seq, link_K, link_depth = [], [], []
+    link_images: list[_LinkImages | None] = []
     for ix in seqs:
         pairs = [scale_and_crop(frames.read_image(i), frames.frames[i].intrinsics, W, H, 1.0, 0.0, 0.0) for i in ix]
         T, depth = poses([p[0] for p in pairs], np.stack([p[1].K() for p in pairs]))
@@ -191,6 +192,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
                               [link_depth[0], link_depth[k]], cfg_k)
         regs += r
         world.append(w[1])
+        link_images[k] = None  # its cached images are no longer needed
     out = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T in zip(seqs, world):
         out[ix] = T.astype(np.float32)

@@ -180,8 +180,8 @@ class TripletData:
     the un-jittered images): ``two_view_T (2, 4, 4)``, ``two_view_points (2, N, 3)``, ``two_view_ok (2,)``.
     With ``track_width`` the pairs are tracked on the stored images down-sized to at most that
     width (0: on the training images), their points mapped into the middle frame's crop (NaN rows
-    where they fall outside it), and the parallax threshold scaled by the width ratio (the same
-    pairs count as rotation only).
+    where they fall outside it; a measured pair left without any is a failed one), and the
+    rotation-only threshold scaled to the tracked size (the same parallax counts as rotation only).
     """
 
     def __init__(self, frames: ImageFrames, cfg: AugmentConfig, two_view: bool = False, track_width: int = 0) -> None:
@@ -218,7 +218,7 @@ class TripletData:
             "is_global": t.is_global,
         }
         if self.two_view:
-            pairs = (self._tracked_pairs(idx, raws, boxes[1]) if self.track_width
+            pairs = (self._tracked_pairs(idx, raws, boxes) if self.track_width
                      else [_bootstrap_pair(images[1], images[i], Ks[1], Ks[i]) for i in (0, 2)])
             out["two_view_T"] = np.stack([p[0] for p in pairs])
             out["two_view_points"] = np.stack([p[1] for p in pairs])
@@ -227,9 +227,9 @@ class TripletData:
 
 
     def _tracked_pairs(self, idx: tuple[int, int, int], raws: list[np.ndarray],
-                       box: tuple[int, int, int, int]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+                       boxes: list[tuple[int, int, int, int]]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
         """The bootstrap's pairs tracked on the stored images at ``track_width``, the points in
-        the middle frame's crop (``box``: its resized size and corner)."""
+        the middle frame's crop (``boxes``: each frame's resized size and crop corner)."""
         import cv2
 
         from relocdepth.twoview import BOOTSTRAP_MIN_PARALLAX_PX
@@ -243,10 +243,15 @@ class TripletData:
                         else cv2.resize(raw, (tw, th), interpolation=cv2.INTER_AREA))
             Ks.append(intr.scaled(tw, th).K())
         th, tw = imgs[1].shape[:2]
-        threshold = BOOTSTRAP_MIN_PARALLAX_PX * tw / self.cfg.width
-        pairs = [_bootstrap_pair(imgs[1], imgs[i], Ks[1], Ks[i], min_parallax_px=threshold) for i in (0, 2)]
-        for _, points, _ in pairs:
-            points[:] = track_to_crop(points, (tw, th), box, (self.cfg.width, self.cfg.height))
+        pairs = []
+        for i in (0, 2):
+            # parallax is measured in the source's pixels: the crop path's threshold at this size
+            threshold = BOOTSTRAP_MIN_PARALLAX_PX * imgs[i].shape[1] / boxes[i][0]
+            T, points, ok = _bootstrap_pair(imgs[1], imgs[i], Ks[1], Ks[i], min_parallax_px=threshold)
+            points = track_to_crop(points, (tw, th), boxes[1], (self.cfg.width, self.cfg.height))
+            if ok and np.any(T[:3, 3] != 0) and not np.isfinite(points[:, 2]).any():
+                ok = False  # a measured translation whose points all left the crop: no length for it
+            pairs.append((T, points, ok))
         return pairs
 
 

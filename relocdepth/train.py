@@ -161,6 +161,8 @@ class TrainConfig:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         if self.bootstrap_track_width < 0:
             raise UserError(f"--bootstrap-track-width must be >= 0 pixels, not {self.bootstrap_track_width}")
+        if self.bootstrap_track_width and self.bootstrap != "essential":
+            raise UserError("--bootstrap-track-width is for --bootstrap essential (it tracks that bootstrap's pairs)")
 
     @property
     def size(self) -> tuple[int, int]:

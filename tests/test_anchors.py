@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -205,7 +206,8 @@ def test_linked_anchors_put_every_sequence_in_the_first_ones_world(synth_shards_
     def poses(images: list[np.ndarray], K: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         k = next(calls)
         assert len(images) == len(K) == len(seqs[k]) and images[0].shape == (96, 128, 3)
-        return own[k] @ world @ T_gt[seqs[k]], [depth_gt[i] for i in seqs[k]]
+        return own[k] @ world @ T_gt[seqs[k]], [cv2.resize(depth_gt[i], (128, 96), interpolation=cv2.INTER_NEAREST)
+                                                for i in seqs[k]]  # at the networks' size, as promised
 
     a = build_linked_anchors(frames, poses, (128, 96))
     assert a.T_wc.shape == (len(frames), 4, 4) and a.T_wc.dtype == np.float32

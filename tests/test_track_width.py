@@ -84,4 +84,8 @@ def test_track_width_must_not_be_negative(synth_shards_320: Path) -> None:
     with pytest.raises(ValueError, match="track_width"):
         TripletData(ImageFrames.open(synth_shards_320), AugmentConfig(128, 96), two_view=True, track_width=-1)
     with pytest.raises(UserError, match="--bootstrap-track-width"):
-        TrainConfig.from_dict({"bootstrap_track_width": -5})
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "bootstrap_track_width": -5})
+    with pytest.raises(UserError, match="is for --bootstrap essential"):
+        TrainConfig.from_dict({"bootstrap": "posenet", "bootstrap_steps": 10, "bootstrap_track_width": 320})
+    assert TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10,
+                                  "bootstrap_track_width": 320}).bootstrap_track_width == 320

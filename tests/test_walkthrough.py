@@ -23,8 +23,10 @@ def test_test_frames_are_the_end_or_blocks_inside_the_walk():
     assert sum(hi - lo for lo, hi in walkthrough.test_ranges(100, 29, blocks=4)) == 29
     with pytest.raises(SystemExit, match="no training frames between"):
         walkthrough.test_ranges(10, 8, blocks=3)
-    with pytest.raises(SystemExit, match="--test must be"):
+    with pytest.raises(SystemExit, match="must number 1..9"):
         walkthrough.test_ranges(10, 10)
+    with pytest.raises(SystemExit, match="2 frames in 3 blocks"):
+        walkthrough.test_ranges(100, 2, blocks=3)
 
 
 def _walk(root: Path, n: int) -> np.ndarray:

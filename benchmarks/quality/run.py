@@ -323,7 +323,8 @@ def main() -> None:
     ap.add_argument("--parallel", type=int, default=1, help="rows trained at once")
     ap.add_argument("--data", type=Path, default=None,
                     help="a walk-through folder (images/, depth/, poses.txt, K.txt) instead of the demo scene")
-    ap.add_argument("--walk-test", type=int, default=30, help="with --data: the last N frames are the test sequence")
+    ap.add_argument("--walk-test", type=int, default=30,
+                    help="with --data: N test frames (the walk's last N, or --walk-blocks blocks of them)")
     ap.add_argument("--walk-blocks", type=int, default=1,
                     help="with --data: the test frames in B blocks spread inside the walk (default 1: its end)")
     ap.add_argument("--size", default=None, help=f"training size WxH (default {SIZE}; 192x128 suits 3:2 walk-throughs)")

@@ -28,8 +28,9 @@ def test_ranges(n: int, test: int, blocks: int = 1) -> list[tuple[int, int]]:
     """Frame ranges ``[lo, hi)`` of the test frames among ``n``: the last ``test`` (``blocks`` 1), or
     ``blocks`` near-equal blocks centred at (i + 1/2) / blocks of the walk, with training frames
     before, between and after them."""
-    if blocks < 1 or not 0 < test < n:
-        raise SystemExit(f"--test must be in 1..{n - 1} and --blocks at least 1 (got {test}, {blocks})")
+    if not 1 <= blocks <= test or not 0 < test < n:
+        raise SystemExit(f"the test frames must number 1..{n - 1} and the blocks 1..that many (got {test} "
+                         f"frames in {blocks} blocks)")
     if blocks == 1:
         return [(n - test, n)]
     ranges = []
