@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -187,7 +187,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     regs, world = [], [T_seq[0]]
     for k in range(1, len(seqs)):  # one sequence at a time: each queried at most LINK_QUERIES times
         every = max(base.query_every, -(-len(seqs[k]) // LINK_QUERIES))
-        cfg_k = VOConfig(**{**base.__dict__, "query_every": every})
+        cfg_k = replace(base, query_every=every)
         r, w = join_sequences([link_images[0], link_images[k]], [link_K[0], link_K[k]], [T_seq[0], T_seq[k]],
                               [link_depth[0], link_depth[k]], cfg_k)
         regs += r
