@@ -104,3 +104,20 @@ def relative_pose_consistency(T_a: Tensor, T_b: Tensor, t_weight: Tensor | None 
     if t_weight is not None:
         dt = dt * t_weight[:, None]
     return torch.linalg.vector_norm(torch.cat((dr, dt), dim=-1), dim=-1)
+
+
+def translation_direction_angle(t_a: Tensor, t_b: Tensor, eps: float = 1e-12) -> Tensor:
+    """Angle (radians) between translations ``(N, 3)``, per row ``(N,)``, whatever their lengths
+    (the bootstrap measures directions; its lengths come from the current depth). 0 for a row where
+    either is (nearly) zero: no direction there. The gradient is finite everywhere, also where the
+    directions agree (``eps`` under the cross product's norm)."""
+    tiny = 1e-9
+    n_a, n_b = torch.linalg.vector_norm(t_a, dim=-1), torch.linalg.vector_norm(t_b, dim=-1)
+    ok = (n_a > tiny) & (n_b > tiny)
+    e_x = torch.zeros_like(t_a)
+    e_x[..., 0] = 1.0
+    u_a = torch.where(ok[..., None], t_a, e_x) / torch.where(ok, n_a, torch.ones_like(n_a))[..., None]
+    u_b = torch.where(ok[..., None], t_b, e_x) / torch.where(ok, n_b, torch.ones_like(n_b))[..., None]
+    cross = torch.linalg.cross(u_a, u_b, dim=-1)
+    angle = torch.atan2(torch.sqrt((cross * cross).sum(-1) + eps), (u_a * u_b).sum(-1))
+    return torch.where(ok, angle, torch.zeros_like(angle))

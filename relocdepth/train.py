@@ -93,6 +93,9 @@ class TrainConfig:
     bootstrap_steps: int = 0
     bootstrap_fade_steps: int = 500
     w_bootstrap: float = 1.0
+    # Weight (times w_bootstrap's) of the term that holds the DSC's translation directions to the
+    # bootstrap's where it measured them (relocdepth.method.Bootstrap.w_direction; 0: none).
+    w_direction: float = 0.0
     # The essential bootstrap tracks its pairs on the stored images down-sized to at most this width
     # (0: on the training images): finer tracks give finer poses on real video (README, Training).
     bootstrap_track_width: int = 0
@@ -159,6 +162,11 @@ class TrainConfig:
             raise UserError("--anchor-step, --anchor-every and --w-anchor must be >= 0")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
+        if not (self.w_direction >= 0 and math.isfinite(self.w_direction)):
+            raise UserError(f"--w-direction must be a number >= 0, not {self.w_direction}")
+        if self.w_direction and self.bootstrap == "off":
+            raise UserError("--w-direction needs a --bootstrap (it holds the DSC's translation "
+                            "directions to the bootstrap's)")
         if self.bootstrap_track_width < 0:
             raise UserError(f"--bootstrap-track-width must be >= 0 pixels, not {self.bootstrap_track_width}")
         if self.bootstrap_track_width and self.bootstrap != "essential":
@@ -627,7 +635,7 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0,
         T_wc = None if tr.gt_poses is None else tr.gt_poses[b["index"]].to(tr.device)
         two_view = (b["two_view_T"], b["two_view_points"], b["two_view_ok"]) if "two_view_T" in b else None
         T_anchor = anchors[b["index"]].to(tr.device) if w_anchor > 0 else None
-        boot = Bootstrap(warps, w, T_wc, two_view, T_anchor, w_anchor)
+        boot = Bootstrap(warps, w, T_wc, two_view, T_anchor, w_anchor, tr.cfg.w_direction)
     depth = None
     if tr.gt_depths is not None:
         W, H = tr.cfg.size
