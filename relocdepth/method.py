@@ -97,9 +97,12 @@ class Bootstrap:
 
     ``w_direction``: weight (times ``w_consistency``) of ``L_dir``, the angle (radians) between the
     DSC's and the bootstrap's translation directions of the pairs whose translation the bootstrap
-    measured. ``L_boot`` counts a translation by the image motion it causes, so a pair 7 cm apart
-    in a room 1.7 m deep weighs a 15 deg error of its direction like a 0.6 deg rotation; the
-    direction is what keeps the cameras' orientations and positions in one world (README, trial 18).
+    measured, each times its baseline over the scene's depth, averaged over those pairs. ``L_boot``
+    counts a translation by the image motion it causes, so a pair 7 cm apart in a room 1.7 m deep
+    weighs a 15 deg error of its direction like a 0.6 deg rotation; ``L_dir`` is that error's
+    direction part alone, which ``w_direction`` can weigh up without also weighing up the length
+    (which the bootstrap takes from the current depth). The direction is what keeps the cameras'
+    orientations and positions in one world (README, trial 18).
     """
 
     warps: bool
@@ -307,9 +310,13 @@ def _triplet_loss_fp32(
         err = relative_pose_consistency(rel_net, rel_boot, flat(t_weight))  # (B * P,)
         boot_parts["L_boot"] = err.mean()
         if boot.w_direction > 0:
+            # Each pair's angle weighs by the parallax it measures (its baseline over the scene's
+            # depth): a short baseline has no direction to teach, and the angle's gradient on the
+            # camera centres (1 / baseline) stays bounded.
             known = flat(t_weight) > 0
             ang = translation_direction_angle(rel_net[:, :3, 3], rel_boot[:, :3, 3])
-            boot_parts["L_dir"] = (torch.where(known, ang, torch.zeros_like(ang)).sum()
+            weighted = ang * rel_boot[:, :3, 3].norm(dim=-1) * flat(t_weight)
+            boot_parts["L_dir"] = (torch.where(known, weighted, torch.zeros_like(ang)).sum()
                                    / known.sum().clamp(min=1))
         with torch.no_grad():
             t_b, r_b = geo.pose_errors(rel_boot, torch.eye(4, dtype=T.dtype, device=T.device))

@@ -52,9 +52,9 @@ def _poses(seed: int) -> torch.Tensor:
     return T.reshape(1, 3, 4, 4)
 
 
-def _expected_mean_angle(T_a: np.ndarray, T_b: np.ndarray) -> float:
-    """Mean over the 6 ordered pairs (t, s) of the angle between the translations of
-    T_s^-1 T_t under the two pose sets (camera-to-world 4x4 each)."""
+def _expected_term(T_a: np.ndarray, T_b: np.ndarray, depth: float) -> float:
+    """Mean over the 6 ordered pairs (t, s) of the angle between the translations of T_s^-1 T_t
+    under the two pose sets (camera-to-world 4x4 each), times T_b's baseline over ``depth``."""
     angles = []
     for t in range(3):
         for s in range(3):
@@ -63,15 +63,15 @@ def _expected_mean_angle(T_a: np.ndarray, T_b: np.ndarray) -> float:
             ua = (np.linalg.inv(T_a[s]) @ T_a[t])[:3, 3]
             ub = (np.linalg.inv(T_b[s]) @ T_b[t])[:3, 3]
             c = ua @ ub / np.linalg.norm(ua) / np.linalg.norm(ub)
-            angles.append(math.acos(max(-1.0, min(1.0, c))))
+            angles.append(math.acos(max(-1.0, min(1.0, c))) * np.linalg.norm(ub) / depth)
     return float(np.mean(angles))
 
 
 def test_direction_term_is_the_mean_angle_of_the_pairs_translations() -> None:
     """A DSC whose cells give the bootstrap's poses has L_dir 0; with the third camera moved, L_dir
-    is the mean angle between the pairs' translation directions computed from the matrices, in any
-    depth units; it enters the total with w_consistency x w_direction, and teaches the DSC network
-    only."""
+    is the mean over the pairs of the angle between their translation directions, computed from the
+    matrices, times the bootstrap's baseline over the scene's depth: the same in any depth units;
+    it enters the total with w_consistency x w_direction, and teaches the DSC network only."""
     torch.manual_seed(0)
     nets = Networks(ModelConfig())
     imgs = torch.rand(1, 3, 3, H, W)
@@ -92,8 +92,8 @@ def test_direction_term_is_the_mean_angle_of_the_pairs_translations() -> None:
         moved[0, 2, :3, 3] += torch.tensor([0.08, -0.05, 0.03]) * k
         total, parts, diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.5, moved, w_direction=2.0),
                                           depth_override=depth)
-        expected = _expected_mean_angle(T_k[0].double().numpy(), moved[0].double().numpy())
-        assert expected > 0.1
+        expected = _expected_term(T_k[0].double().numpy(), moved[0].double().numpy(), 1.5 * k)
+        assert expected > 0.01
         assert float(parts["L_dir"]) == pytest.approx(expected, rel=2e-2)
         got.append(float(parts["L_dir"]))
         plain, p_parts, _ = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.5, moved),
@@ -112,9 +112,10 @@ def test_direction_term_is_the_mean_angle_of_the_pairs_translations() -> None:
 
 def test_direction_term_counts_only_the_pairs_whose_translation_was_measured() -> None:
     """Essential bootstrap, one pair measured (middle -> frame 0, its direction off the DSC's) and
-    one rotation-only (middle -> frame 2: no translation to compare): L_dir is the mean angle of
-    the two pairs between frames 0 and 1, computed from the matrices; the pairs with frame 2 do not
-    count. With both pairs rotation-only there is nothing to compare: L_dir is 0."""
+    one rotation-only (middle -> frame 2: no translation to compare): L_dir is the mean over the
+    two pairs between frames 0 and 1 of their angle, computed from the matrices, times the baseline
+    over the scene's depth; the pairs with frame 2 do not count. With both pairs rotation-only there
+    is nothing to compare: L_dir is 0."""
 
     nets = Networks(ModelConfig())
     imgs = torch.rand(1, 3, 3, H, W)
@@ -144,7 +145,7 @@ def test_direction_term_counts_only_the_pairs_whose_translation_was_measured() -
         ub = (np.linalg.inv(b[s_]) @ b[t])[:3, 3]
         angles.append(math.acos(ua @ ub / np.linalg.norm(ua) / np.linalg.norm(ub)))
     assert min(angles) > 0.05
-    assert float(parts["L_dir"]) == pytest.approx(float(np.mean(angles)), rel=2e-2)
+    assert float(parts["L_dir"]) == pytest.approx(float(np.mean(angles)) * float(length) / 1.5, rel=2e-2)
     assert diag["dsc_boot_dir_deg"] == pytest.approx(math.degrees(float(np.median(angles))), rel=2e-2)
 
     points[0, 0] = float("nan")
