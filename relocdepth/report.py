@@ -44,7 +44,9 @@ def format_table(report: dict) -> str:
         _pose_row("thumbnail retrieval", base["retrieval"]),
         _pose_row("(train frames, fit residual)", pose["train"]),
         "",
-        f"rotation-only alignment: median rotation error {pose['rotation_only']['median_r_deg']:.2f} deg",
+        f"rotation-only alignment: median rotation error {pose['rotation_only']['median_r_deg']:.2f} deg"
+        + (f"; it is {pose['rotation_only']['fit_gap_deg']:.2f} deg from the centre-fitted Sim(3)'s rotation"
+           if "fit_gap_deg" in pose["rotation_only"] else ""),  # older reports lack it
     ]
     rel = pose["relative"]
     if rel["pairs"]:

@@ -66,6 +66,26 @@ def test_known_sim3_gives_zero_error() -> None:
         report["spread"]["ground_truth"]["centre_rms"] / 3.0)
 
 
+def test_alignment_gap_when_centres_and_orientations_disagree() -> None:
+    """Predictions whose centres are the GT's in one frame and whose orientations are the GT's
+    turned a further 7 deg about the vertical: the rotation-only alignment recovers the
+    orientations exactly and says it is 7 deg from the centre fit, which hands its 7 deg to every
+    aligned rotation; with one world (the known-Sim(3) case) the gap is 0."""
+    train_gt, test_gt = trajectory(30, 0), trajectory(12, 1, offset=(0.1, 0.0, 0.0))
+    to_net = (0.5, R0.T, -0.5 * R0.T @ T0)
+    train_est, test_est = sim3(train_gt, *to_net), sim3(test_gt, *to_net)
+    report, _, _ = pose_report(train_est, train_gt, test_est, test_gt, ["s"] * 12)
+    assert report["rotation_only"]["fit_gap_deg"] == pytest.approx(0.0, abs=1e-4)
+    turn = EG.quat_wxyz_to_rotmat(np.array([np.cos(np.radians(3.5)), 0.0, np.sin(np.radians(3.5)), 0.0]))
+    for T in (train_est, test_est):
+        T[:, :3, :3] = R0.T @ turn @ R0 @ T[:, :3, :3]  # a world-side turn in GT axes
+    report, fit, _ = pose_report(train_est, train_gt, test_est, test_gt, ["s"] * 12)
+    np.testing.assert_allclose(fit.R, R0, atol=1e-9)  # the centres still fit exactly
+    assert report["rotation_only"]["median_r_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert report["rotation_only"]["fit_gap_deg"] == pytest.approx(7.0, abs=1e-4)
+    assert report["test"]["median_r_deg"] == pytest.approx(7.0, abs=1e-4)
+
+
 def test_constructed_test_errors_of_known_size() -> None:
     train_gt, test_gt = trajectory(30, 0), trajectory(10, 1)
     test_est = test_gt.copy()
