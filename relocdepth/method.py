@@ -97,7 +97,8 @@ class Bootstrap:
 
     ``w_direction``: weight (times ``w_consistency``) of ``L_dir``, the angle (radians) between the
     DSC's and the bootstrap's translation directions of the pairs whose translation the bootstrap
-    measured, each times its baseline over the scene's depth, averaged over those pairs. ``L_boot``
+    measured, each times its baseline over the scene's depth, averaged over those pairs; it moves
+    the camera centres only (the orientations detached). ``L_boot``
     counts a translation by the image motion it causes, so a pair 7 cm apart in a room 1.7 m deep
     weighs a 15 deg error of its direction like a 0.6 deg rotation; ``L_dir`` is that error's
     direction part alone, which ``w_direction`` can weigh up without also weighing up the length
@@ -310,11 +311,16 @@ def _triplet_loss_fp32(
         err = relative_pose_consistency(rel_net, rel_boot, flat(t_weight))  # (B * P,)
         boot_parts["L_boot"] = err.mean()
         if boot.w_direction > 0:
-            # Each pair's angle weighs by the parallax it measures (its baseline over the scene's
-            # depth): a short baseline has no direction to teach, and the angle's gradient on the
-            # camera centres (1 / baseline) stays bounded.
+            # The cameras' orientations detached: the term moves the centres to where the
+            # orientations and the bootstrap's directions put them (the relative rotations are
+            # L_boot's to teach; noisy directions early in training would only shake them). Each
+            # pair's angle weighs by the parallax it measures (its baseline over the scene's depth):
+            # a short baseline has no direction to teach, and the angle's gradient on the centres
+            # (1 / baseline) stays bounded.
             known = flat(t_weight) > 0
-            ang = translation_direction_angle(rel_net[:, :3, 3], rel_boot[:, :3, 3])
+            T_centres = torch.cat((T_cons[..., :3, :3].detach(), T_cons[..., :3, 3:]), dim=-1)
+            T_centres = torch.cat((T_centres, T_cons[..., 3:, :]), dim=-2)
+            ang = translation_direction_angle(pair_poses(T_centres)[:, :3, 3], rel_boot[:, :3, 3])
             weighted = ang * rel_boot[:, :3, 3].norm(dim=-1) * flat(t_weight)
             boot_parts["L_dir"] = (torch.where(known, weighted, torch.zeros_like(ang)).sum()
                                    / known.sum().clamp(min=1))
