@@ -166,3 +166,28 @@ def test_direction_weight_needs_a_bootstrap_and_a_sane_value() -> None:
     for bad in (-1.0, float("nan")):
         with pytest.raises(UserError, match="--w-direction"):
             TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "w_direction": bad})
+
+
+def test_w_direction_reaches_the_run_and_its_log(synth_shards, tmp_path) -> None:
+    """`reloc train --bootstrap essential --w-direction 2` trains, keeps the weight in the run's
+    config and logs a finite L_dir every step; without a bootstrap it is one error line
+    and no run folder."""
+    import json
+
+    from relocdepth.cli.main import app
+    from typer.testing import CliRunner
+
+    run = tmp_path / "run"
+    res = CliRunner().invoke(app, [
+        "train", str(synth_shards), "-o", str(run), "--size", "64x64", "--batch-size", "2", "--pretrained",
+        "none", "--workers", "0", "--no-progress", "--log-every", "1", "--max-steps", "2",
+        "--bootstrap", "essential", "--bootstrap-steps", "10", "--w-direction", "2"])
+    assert res.exit_code == 0, res.output[-3000:]
+    assert json.loads((run / "config.json").read_text())["train"]["w_direction"] == 2.0
+    steps = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    steps = [r for r in steps if r.get("kind") == "step"]
+    assert len(steps) == 2 and all(math.isfinite(r["parts"]["L_dir"]) for r in steps)
+
+    bad = tmp_path / "bad"
+    res = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(bad), "--w-direction", "2"])
+    assert res.exit_code == 2 and "--w-direction needs a --bootstrap" in res.output and not bad.exists()
