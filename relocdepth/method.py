@@ -21,8 +21,8 @@ from relocdepth.losses import (
     photometric_loss,
     pose_coordinate_loss,
     relative_pose_consistency,
-    translation_direction_angle,
     smoothness_loss,
+    translation_direction_angle,
 )
 from relocdepth.models import Networks, disp_to_depth
 
@@ -97,8 +97,9 @@ class Bootstrap:
 
     ``w_direction``: weight (times ``w_consistency``) of ``L_dir``, the angle (radians) between the
     DSC's and the bootstrap's translation directions of the pairs whose translation the bootstrap
-    measured, each times its baseline over the scene's depth, averaged over those pairs; it moves
-    the camera centres only (the orientations detached). ``L_boot``
+    measured, each times its baseline (the smaller of the two) over the scene's depth, averaged over
+    those pairs; it moves the camera centres only (the orientations, and the DSC's ray rotations
+    that the centres depend on, detached). ``L_boot``
     counts a translation by the image motion it causes, so a pair 7 cm apart in a room 1.7 m deep
     weighs a 15 deg error of its direction like a 0.6 deg rotation; ``L_dir`` is that error's
     direction part alone, which ``w_direction`` can weigh up without also weighing up the length
@@ -222,7 +223,10 @@ def triplet_loss(
         of the DSC's relative poses with the bootstrap's, added with weight ``boot.w_consistency``)
         and diagnostics ``boot_warps`` (1 when the warps use the bootstrap poses), ``boot_rel_trans``,
         ``boot_rel_rot_deg`` (size of the bootstrap's relative poses) and ``dsc_boot_trans``,
-        ``dsc_boot_rot_deg`` (how far the DSC's relative poses are from them). With ``boot.anchored``:
+        ``dsc_boot_rot_deg`` (how far the DSC's relative poses are from them), ``dsc_boot_dir_deg``
+        (median angle between their translation directions, over the pairs the bootstrap measured;
+        absent when it measured none); with ``boot.w_direction > 0`` also ``parts["L_dir"]`` (added
+        with weight ``boot.w_consistency * boot.w_direction``). With ``boot.anchored``:
         ``parts["L_anchor"]`` (added with weight ``boot.w_anchor``) and diagnostics ``anchor_trans``,
         ``anchor_rot_deg`` (how far the DSC's poses are from the anchors).
     """
@@ -318,10 +322,13 @@ def _triplet_loss_fp32(
             # a short baseline has no direction to teach, and the angle's gradient on the centres
             # (1 / baseline) stays bounded.
             known = flat(t_weight) > 0
-            T_centres = torch.cat((T_cons[..., :3, :3].detach(), T_cons[..., :3, 3:]), dim=-1)
-            T_centres = torch.cat((T_centres, T_cons[..., 3:, :]), dim=-2)
-            ang = translation_direction_angle(pair_poses(T_centres)[:, :3, 3], rel_boot[:, :3, 3])
-            weighted = ang * rel_boot[:, :3, 3].norm(dim=-1) * flat(t_weight)
+            t_net = pair_poses(_centres_only(T_cons, pose_out, depths[0], Kf, cfg.use_dsc))[:, :3, 3]
+            t_ref = rel_boot[:, :3, 3]
+            ang = translation_direction_angle(t_net, t_ref)
+            # min(|t_dsc|, |t_boot|): the angle's gradient on t_dsc is 1 / |t_dsc|, so this keeps
+            # it below 1 / D also where the DSC's own baseline is (nearly) zero
+            baseline = torch.minimum(t_net.detach().norm(dim=-1), t_ref.norm(dim=-1))
+            weighted = ang * baseline * flat(t_weight)
             boot_parts["L_dir"] = (torch.where(known, weighted, torch.zeros_like(ang)).sum()
                                    / known.sum().clamp(min=1))
         with torch.no_grad():
@@ -404,6 +411,16 @@ def _triplet_loss_fp32(
         diag["valid_frac"] = valid_frac
         diag.update(boot_diag)
     return total, parts, diag
+
+
+def _centres_only(T: Tensor, pose_out: Tensor, depth0: Tensor, K: Tensor, use_dsc: bool) -> Tensor:
+    """``T (B, 3, 4, 4)`` whose gradients reach the camera centres only, never the orientations:
+    the rotations detached, and with the DSC the centres recomputed from its output with the ray
+    rotations ``theta`` detached (``c = tau - |Q| G e_z`` depends on them) and the depth detached."""
+    if use_dsc:
+        out = torch.cat((pose_out[:, :3].detach(), pose_out[:, 3:]), dim=1)
+        T = _absolute_poses(out, depth0.detach(), K, True, "mean")[0].reshape(T.shape)
+    return torch.cat((torch.cat((T[..., :3, :3].detach(), T[..., :3, 3:]), dim=-1), T[..., 3:, :]), dim=-2)
 
 
 def two_view_poses(two_view: tuple[Tensor, Tensor, Tensor], depth_mid: Tensor,

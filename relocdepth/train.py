@@ -164,9 +164,9 @@ class TrainConfig:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         if not (self.w_direction >= 0 and math.isfinite(self.w_direction)):
             raise UserError(f"--w-direction must be a number >= 0, not {self.w_direction}")
-        if self.w_direction and self.bootstrap == "off":
-            raise UserError("--w-direction needs a --bootstrap (it holds the DSC's translation "
-                            "directions to the bootstrap's)")
+        if self.w_direction and (self.bootstrap == "off" or not self.w_bootstrap):
+            raise UserError("--w-direction needs a --bootstrap and --w-bootstrap > 0 (it holds the DSC's "
+                            "translation directions to the bootstrap's, weighted and faded with that term)")
         if self.bootstrap_track_width < 0:
             raise UserError(f"--bootstrap-track-width must be >= 0 pixels, not {self.bootstrap_track_width}")
         if self.bootstrap_track_width and self.bootstrap != "essential":

@@ -54,7 +54,7 @@ def _poses(seed: int) -> torch.Tensor:
 
 def _expected_term(T_a: np.ndarray, T_b: np.ndarray, depth: float) -> float:
     """Mean over the 6 ordered pairs (t, s) of the angle between the translations of T_s^-1 T_t
-    under the two pose sets (camera-to-world 4x4 each), times T_b's baseline over ``depth``."""
+    under the two pose sets (camera-to-world 4x4 each), times the shorter baseline over ``depth``."""
     angles = []
     for t in range(3):
         for s in range(3):
@@ -63,14 +63,14 @@ def _expected_term(T_a: np.ndarray, T_b: np.ndarray, depth: float) -> float:
             ua = (np.linalg.inv(T_a[s]) @ T_a[t])[:3, 3]
             ub = (np.linalg.inv(T_b[s]) @ T_b[t])[:3, 3]
             c = ua @ ub / np.linalg.norm(ua) / np.linalg.norm(ub)
-            angles.append(math.acos(max(-1.0, min(1.0, c))) * np.linalg.norm(ub) / depth)
+            angles.append(math.acos(max(-1.0, min(1.0, c))) * min(np.linalg.norm(ua), np.linalg.norm(ub)) / depth)
     return float(np.mean(angles))
 
 
 def test_direction_term_is_the_mean_angle_of_the_pairs_translations() -> None:
     """A DSC whose cells give the bootstrap's poses has L_dir 0; with the third camera moved, L_dir
     is the mean over the pairs of the angle between their translation directions, computed from the
-    matrices, times the bootstrap's baseline over the scene's depth: the same in any depth units;
+    matrices, times the shorter of the two baselines over the scene's depth: the same in any depth units;
     it enters the total with w_consistency x w_direction, and teaches the DSC network only."""
     torch.manual_seed(0)
     nets = Networks(ModelConfig())
@@ -110,11 +110,38 @@ def test_direction_term_is_the_mean_angle_of_the_pairs_translations() -> None:
     assert all(p.grad is None or p.grad.abs().sum() == 0 for p in nets.depth.parameters())
 
 
+def test_direction_term_moves_the_centres_only_and_its_gradient_stays_bounded() -> None:
+    """L_dir's gradient reaches the DSC's scene points (tau), never its ray rotations (theta: the
+    orientations, which the centres also depend on); and it stays below ~1 / D however short the
+    DSC's own baseline between two frames gets (the angle's own gradient grows as 1 / baseline)."""
+    nets = Networks(ModelConfig())
+    imgs = torch.rand(1, 3, 3, H, W)
+    K = torch.tensor([[60.0, 0, (W - 1) / 2], [0, 60.0, (H - 1) / 2], [0, 0, 1]]).expand(1, 3, 3, 3).clone()
+    D = 1.5
+    depth = torch.full((1, 3, 1, H, W), D)
+    T_boot = _poses(seed=21)
+    norms = []
+    for gap in (1e-1, 1e-3, 1e-5):
+        T_dsc = T_boot.clone()
+        T_dsc[0, 2, :3, 3] = T_dsc[0, 1, :3, 3] + torch.tensor([0.6, -0.8, 0.0]) * gap  # frame 2 ~ on frame 1
+        out = geo.dsc_from_pose(T_dsc.reshape(3, 4, 4), geo.pool_depth(depth.reshape(3, 1, H, W)),
+                                K.reshape(3, 3, 3)).clone().requires_grad_(True)
+        nets.dsc = FixedDSC(out)
+        _, parts, _ = triplet_loss(nets, imgs, imgs, K, MethodConfig(),
+                                   Bootstrap(False, 1.0, T_boot, w_direction=1.0), depth_override=depth)
+        parts["L_dir"].backward()
+        assert out.grad is not None
+        assert torch.all(out.grad[:, :3] == 0)  # theta
+        assert out.grad[:, 3:].abs().sum() > 0  # tau
+        norms.append(float(out.grad.norm()))
+    assert max(norms) < 10 / D, norms
+
+
 def test_direction_term_counts_only_the_pairs_whose_translation_was_measured() -> None:
     """Essential bootstrap, one pair measured (middle -> frame 0, its direction off the DSC's) and
     one rotation-only (middle -> frame 2: no translation to compare): L_dir is the mean over the
-    two pairs between frames 0 and 1 of their angle, computed from the matrices, times the baseline
-    over the scene's depth; the pairs with frame 2 do not count. With both pairs rotation-only there
+    two pairs between frames 0 and 1 of their angle, computed from the matrices, times the shorter
+    baseline over the scene's depth; the pairs with frame 2 do not count. With both pairs rotation-only there
     is nothing to compare: L_dir is 0."""
 
     nets = Networks(ModelConfig())
@@ -139,13 +166,14 @@ def test_direction_term_counts_only_the_pairs_whose_translation_was_measured() -
                                   Bootstrap(True, 1.0, two_view=(T_1i, points, ok), w_direction=1.0),
                                   depth_override=depth)
     a, b = T_dsc[0].double().numpy(), T_b[0].double().numpy()
-    angles = []
+    angles, weights = [], []
     for t, s_ in ((0, 1), (1, 0)):
         ua = (np.linalg.inv(a[s_]) @ a[t])[:3, 3]
         ub = (np.linalg.inv(b[s_]) @ b[t])[:3, 3]
         angles.append(math.acos(ua @ ub / np.linalg.norm(ua) / np.linalg.norm(ub)))
+        weights.append(min(np.linalg.norm(ua), np.linalg.norm(ub)) / 1.5)
     assert min(angles) > 0.05
-    assert float(parts["L_dir"]) == pytest.approx(float(np.mean(angles)) * float(length) / 1.5, rel=2e-2)
+    assert float(parts["L_dir"]) == pytest.approx(float(np.mean(np.multiply(angles, weights))), rel=2e-2)
     assert diag["dsc_boot_dir_deg"] == pytest.approx(math.degrees(float(np.median(angles))), rel=2e-2)
 
     points[0, 0] = float("nan")
@@ -163,6 +191,9 @@ def test_direction_weight_needs_a_bootstrap_and_a_sane_value() -> None:
                                   "w_direction": 0.3}).w_direction == 0.3
     with pytest.raises(UserError, match="--w-direction needs a --bootstrap"):
         TrainConfig.from_dict({"w_direction": 0.3})
+    with pytest.raises(UserError, match="--w-bootstrap > 0"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "w_bootstrap": 0.0,
+                               "w_direction": 0.3})
     for bad in (-1.0, float("nan")):
         with pytest.raises(UserError, match="--w-direction"):
             TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "w_direction": bad})
