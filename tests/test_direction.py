@@ -201,7 +201,8 @@ def test_direction_weight_needs_a_bootstrap_and_a_sane_value() -> None:
 
 def test_w_direction_reaches_the_run_and_its_log(synth_shards, tmp_path) -> None:
     """`reloc train --bootstrap essential --w-direction 2` trains, keeps the weight in the run's
-    config and logs a finite L_dir every step; without a bootstrap it is one error line
+    config and logs a finite L_dir every step, positive where the bootstrap measured a pair;
+    without a bootstrap it is one error line
     and no run folder."""
     import json
 
@@ -218,6 +219,8 @@ def test_w_direction_reaches_the_run_and_its_log(synth_shards, tmp_path) -> None
     steps = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
     steps = [r for r in steps if r.get("kind") == "step"]
     assert len(steps) == 2 and all(math.isfinite(r["parts"]["L_dir"]) for r in steps)
+    measured = [r for r in steps if "dsc_boot_dir_deg" in r["diagnostics"]]  # pairs with a baseline
+    assert measured and all(r["parts"]["L_dir"] > 0 for r in measured)
 
     bad = tmp_path / "bad"
     res = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(bad), "--w-direction", "2"])

@@ -157,6 +157,8 @@ def test_evaluate_end_to_end_and_alignment_in_localize(
     assert "thumbnail retrieval" in res.stdout and "constant depth" in res.stdout
     report = json.loads(report_path.read_text())
     validate("report", report)
+    gap = report["pose"]["rotation_only"]["fit_gap_deg"]
+    assert f"{gap:.2f} deg from the centre-fitted Sim(3)" in res.stdout
     assert report["dataset"]["train_frames"] == 2 * SCENE_FRAMES
     assert report["dataset"]["test_frames"] == SCENE_FRAMES
     assert report["pose"]["test"]["frames"] == SCENE_FRAMES
@@ -214,6 +216,9 @@ def test_evaluate_flags_a_degenerate_fit(
     assert "the predicted positions coincide" in report["alignment"]["degenerate_reason"]
     warnings = [line for line in res.stdout.splitlines() if line.startswith("warning: ")]
     assert len(warnings) == 1 and "degenerate" in warnings[0] and "coincide" in warnings[0]
+    # the Sim(3)'s rotation is arbitrary then: no gap between it and the rotation-only fit
+    assert "fit_gap_deg" not in report["pose"]["rotation_only"]
+    assert "from the centre-fitted" not in res.stdout
 
 
 def test_evaluate_bad_inputs(run: Path, synth_scene: Path, synth_shards: Path, tmp_path: Path) -> None:
