@@ -202,8 +202,7 @@ def test_direction_weight_needs_a_bootstrap_and_a_sane_value() -> None:
 def test_w_direction_reaches_the_run_and_its_log(synth_shards, tmp_path) -> None:
     """`reloc train --bootstrap essential --w-direction 2` trains, keeps the weight in the run's
     config and logs a finite L_dir every step, positive where the bootstrap measured a pair;
-    without a bootstrap it is one error line
-    and no run folder."""
+    without a bootstrap it is one error line and no run folder."""
     import json
 
     from relocdepth.cli.main import app
