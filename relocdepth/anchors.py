@@ -52,6 +52,8 @@ class Anchors:
     lost: int
     registration: list[tuple[int, int]]
     seconds: float
+    turn_deg: float | None = None  # linked anchors: the angle their centres were turned by (None: not turned)
+    turn_pairs: int = 0  # ... and the measured pairs that fixed it
 
 
 def sequences_of(frames: ImageFrames) -> list[list[int]]:
@@ -161,12 +163,17 @@ def link_size(width: int, height: int) -> tuple[int, int]:
 
 
 def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, int],
-                         cfg: VOConfig | None = None) -> Anchors:
+                         cfg: VOConfig | None = None, turn: bool = True) -> Anchors:
     """World poses of every training frame: ``poses``' (in the trainer the networks',
     :func:`network_poses`, of the images at ``size`` (W, H), un-augmented), each sequence after the
     first registered into the first one's world by links between similar frames matched on the
     stored images resized to :data:`LINK_WIDTH` (:func:`relocdepth.vo.join_sequences`; translations' lengths from ``poses``' depth
-    maps, so in the networks' units). ``keyframes`` and ``lost`` are 0 (no odometry)."""
+    maps, so in the networks' units). ``keyframes`` and ``lost`` are 0 (no odometry).
+
+    With ``turn``, the centres are then turned (about their mean, orientations kept) so that the
+    displacements between frames a few apart point where the frames' orientations and the pairs'
+    measured two-view directions say (:func:`direction_turn` over :func:`direction_pairs` of the
+    images at ``size``): the network's positions and orientations in one world."""
     import cv2
 
     t0 = time.perf_counter()
@@ -174,9 +181,13 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     seqs = sequences_of(frames)
     T_seq, link_K, link_depth = [], [], []
     link_images: list[_LinkImages | None] = []
+    measured: list[tuple[int, int, np.ndarray]] = []  # (frame, frame, direction) over all sequences
     for ix in seqs:
         pairs = [scale_and_crop(frames.read_image(i), frames.frames[i].intrinsics, W, H, 1.0, 0.0, 0.0) for i in ix]
         T, depth = poses([p[0] for p in pairs], np.stack([p[1].K() for p in pairs]))
+        if turn:
+            measured += [(ix[i], ix[j], t) for i, j, t in
+                         direction_pairs([p[0] for p in pairs], np.stack([p[1].K() for p in pairs]))]
         intr = frames.frames[ix[0]].intrinsics
         lw, lh = link_size(intr.width, intr.height)
         T_seq.append(T)
@@ -196,4 +207,84 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     out = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T in zip(seqs, world):
         out[ix] = T.astype(np.float32)
-    return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0)
+    turn_deg, kept = None, 0
+    if turn:
+        from relocdepth.eval_geometry import rotation_angle_deg
+
+        W_turn, kept = direction_turn(out, measured)
+        out = turn_centres(out, W_turn).astype(np.float32)
+        turn_deg = float(rotation_angle_deg(W_turn))
+    return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, turn_deg, kept)
+
+
+# The linked anchors' world turned to agree with the measured translation directions: a map whose
+# camera centres and orientations disagree by a rotation hands that rotation to every pose the
+# centre-fitted evaluation aligns (README, trial 18).
+DIRECTION_GAPS = (4, 7, 10)  # frame offsets of the pairs whose two-view directions are measured
+DIRECTION_MAX_DEG = 30.0  # pairs further than this from the fitted turn are outliers
+
+
+def direction_pairs(images: list[np.ndarray], K: np.ndarray,
+                    gaps: tuple[int, ...] = DIRECTION_GAPS) -> list[tuple[int, int, np.ndarray]]:
+    """``(i, j, t)`` for frames ``j = i + gap`` of one sequence (``images`` in order, ``K (N, 3, 3)``)
+    whose two-view translation the bootstrap's geometry measures (:func:`relocdepth.twoview.
+    bootstrap_pair`): ``t`` = the unit direction of ``c_j - c_i`` in camera i's frame."""
+    from relocdepth.twoview import bootstrap_pair
+
+    out = []
+    for gap in gaps:
+        for i in range(len(images) - gap):
+            j = i + gap
+            T, _, ok = bootstrap_pair(images[j], images[i], K[j], K[i])  # T_{i<-j}: t = R_i^T (c_j - c_i)
+            if ok and np.any(T[:3, 3] != 0):
+                out.append((i, j, T[:3, 3].astype(np.float64)))
+    return out
+
+
+def direction_turn(T_wc: np.ndarray, pairs: list[tuple[int, int, np.ndarray]],
+                   max_deg: float = DIRECTION_MAX_DEG, rounds: int = 6,
+                   min_information: float = 0.1) -> tuple[np.ndarray, int]:
+    """The rotation ``W (3, 3)`` that best turns the centres' displacements ``c_j - c_i`` of poses
+    ``T_wc (N, 4, 4)`` to the directions ``R_i t`` that frame i's orientation and the measured ``t``
+    give (``pairs`` from :func:`direction_pairs`, indices into ``T_wc``), each pair weighted by its
+    displacement. Gauss-Newton on the turn's rotation vector; pairs further than ``max_deg`` from
+    the current fit are dropped (all count in the first round). Displacements determine no turn
+    about an axis they all lie along (a straight walk): directions of the rotation vector whose
+    information is under ``min_information`` x the largest stay at 0. Returns ``W`` and the pairs
+    kept; the identity and 0 with fewer than 3 usable pairs."""
+    from relocdepth.eval_geometry import rotation_from_vector
+
+    if not pairs:
+        return np.eye(3), 0
+    i, j = np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+    T = np.asarray(T_wc, np.float64)
+    u = T[j, :3, 3] - T[i, :3, 3]
+    w = np.linalg.norm(u, axis=1)
+    d = np.einsum("nab,nb->na", T[i, :3, :3], np.stack([p[2] for p in pairs]).astype(np.float64))
+    ok = (w > 1e-12) & (np.linalg.norm(d, axis=1) > 1e-12)
+    if ok.sum() < 3:
+        return np.eye(3), 0
+    u, w, d = u[ok] / w[ok, None], w[ok], d[ok] / np.linalg.norm(d[ok], axis=1, keepdims=True)
+    W, keep = np.eye(3), np.ones(len(u), bool)
+    for _ in range(rounds):
+        v = u @ W.T
+        if keep.sum() < 3:
+            return np.eye(3), 0
+        # exp(omega) v ~ v + omega x v = d  ->  [v]x^T omega = d - v, weighted least squares
+        H = np.einsum("n,nab->ab", w[keep], np.eye(3)[None] - np.einsum("na,nb->nab", v[keep], v[keep]))
+        g = np.einsum("n,na->a", w[keep], np.cross(v[keep], d[keep] - v[keep]))
+        lam, vec = np.linalg.eigh(H)
+        good = lam > min_information * lam.max()
+        omega = vec[:, good] @ ((vec[:, good].T @ g) / lam[good])
+        W = rotation_from_vector(omega) @ W
+        cos = np.clip(np.einsum("na,na->n", u @ W.T, d), -1.0, 1.0)
+        keep = np.degrees(np.arccos(cos)) < max_deg
+    return W, int(keep.sum())
+
+
+def turn_centres(T_wc: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """``T_wc (N, 4, 4)`` with the camera centres turned by ``W`` about their mean (orientations kept)."""
+    out = np.array(T_wc, copy=True)
+    c0 = out[:, :3, 3].mean(axis=0)
+    out[:, :3, 3] = (out[:, :3, 3] - c0) @ np.asarray(W, out.dtype).T + c0
+    return out

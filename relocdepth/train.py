@@ -108,6 +108,9 @@ class TrainConfig:
     # sequence registered into the first one's world by links between similar frames. Both need a
     # bootstrap: depth must have learned, and the anchors' weight fades with it.
     anchor: str = "off"
+    # "linked": turn the anchors' centres so that the frames' displacements point where their
+    # orientations and the bootstrap's measured directions say (relocdepth.anchors.direction_turn).
+    anchor_turn: bool = True
     anchor_step: int = 150
     anchor_every: int = 0
     w_anchor: float = 1.0
@@ -655,8 +658,10 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
     m = tr.cfg.method
     if tr.cfg.anchor == "linked":
         a = A.build_linked_anchors(tr.frames, lambda ims, K: A.network_poses(tr.nets, ims, K, tr.device),
-                                   tr.cfg.size)
+                                   tr.cfg.size, turn=tr.cfg.anchor_turn)
         how = f"the DSC's own poses of {len(a.T_wc)} frames"
+        if a.turn_deg is not None:
+            how += f", centres turned {a.turn_deg:.2f} deg to {a.turn_pairs} measured directions"
     else:
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size)
@@ -665,7 +670,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
     reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
     log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
-                 registration=[list(r) for r in a.registration])
+                 registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs)
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
