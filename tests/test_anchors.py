@@ -305,6 +305,8 @@ def test_trainer_builds_linked_anchors_from_its_own_networks(synth_shards: Path,
     built = [d for d in log if d.get("event") == "anchors"]
     assert [d["step"] for d in built] == [1] and built[0]["keyframes"] == 0  # no odometry
     assert len(built[0]["registration"]) == 1  # the second training sequence, linked to the first
+    assert built[0]["turn_deg"] is not None and built[0]["turn_pairs"] >= 0  # turned by default
+    assert _cfg(anchor="linked", anchor_turn=False).anchor_turn is False
     assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
     T = ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["T_wc"]
     assert T.shape == (48, 4, 4) and torch.isfinite(T).all() and not torch.allclose(T[0], torch.eye(4))
