@@ -184,10 +184,10 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     measured: list[tuple[int, int, np.ndarray]] = []  # (frame, frame, direction) over all sequences
     for ix in seqs:
         pairs = [scale_and_crop(frames.read_image(i), frames.frames[i].intrinsics, W, H, 1.0, 0.0, 0.0) for i in ix]
-        T, depth = poses([p[0] for p in pairs], np.stack([p[1].K() for p in pairs]))
+        images, K = [p[0] for p in pairs], np.stack([p[1].K() for p in pairs])
+        T, depth = poses(images, K)
         if turn:
-            measured += [(ix[i], ix[j], t) for i, j, t in
-                         direction_pairs([p[0] for p in pairs], np.stack([p[1].K() for p in pairs]))]
+            measured += [(ix[i], ix[j], t) for i, j, t in direction_pairs(images, K)]
         intr = frames.frames[ix[0]].intrinsics
         lw, lh = link_size(intr.width, intr.height)
         T_seq.append(T)
@@ -252,7 +252,7 @@ def direction_turn(T_wc: np.ndarray, pairs: list[tuple[int, int, np.ndarray]],
     about an axis they all lie along (a straight walk): directions of the rotation vector whose
     information is under ``min_information`` x the largest stay at 0. Returns ``W`` and the pairs
     kept; the identity and 0 with fewer than 3 usable pairs."""
-    from relocdepth.eval_geometry import rotation_from_vector
+    import cv2
 
     if not pairs:
         return np.eye(3), 0
@@ -276,7 +276,7 @@ def direction_turn(T_wc: np.ndarray, pairs: list[tuple[int, int, np.ndarray]],
         lam, vec = np.linalg.eigh(H)
         good = lam > min_information * lam.max()
         omega = vec[:, good] @ ((vec[:, good].T @ g) / lam[good])
-        W = rotation_from_vector(omega) @ W
+        W = cv2.Rodrigues(omega.reshape(3, 1))[0] @ W
         cos = np.clip(np.einsum("na,na->n", u @ W.T, d), -1.0, 1.0)
         keep = np.degrees(np.arccos(cos)) < max_deg
     return W, int(keep.sum())

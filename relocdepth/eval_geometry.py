@@ -44,7 +44,6 @@ __all__ = [
     "quat_xyzw_to_wxyz",
     "rotation_alignment",
     "rotation_angle_deg",
-    "rotation_from_vector",
     "rotation_only_errors",
     "rotmat_to_quat_wxyz",
     "umeyama",
@@ -52,17 +51,6 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- rotations
-
-
-def rotation_from_vector(v: np.ndarray) -> np.ndarray:
-    """The rotation ``(3, 3)`` about ``v``'s axis by ``|v|`` radians (Rodrigues; identity at 0)."""
-    v = np.asarray(v, np.float64)
-    a = float(np.linalg.norm(v))
-    if a < 1e-12:
-        return np.eye(3)
-    k = v / a
-    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(a) * Kx + (1.0 - np.cos(a)) * Kx @ Kx
 
 
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:

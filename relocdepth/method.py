@@ -314,6 +314,7 @@ def _triplet_loss_fp32(
             t_weight = t_weight * (t_known[:, t_idx] & t_known[:, s_idx]).to(T.dtype)
         err = relative_pose_consistency(rel_net, rel_boot, flat(t_weight))  # (B * P,)
         boot_parts["L_boot"] = err.mean()
+        measured = flat(t_weight) > 0  # pairs with a bootstrap translation
         if boot.w_direction > 0:
             # The cameras' orientations detached: the term moves the centres to where the
             # orientations and the bootstrap's directions put them (the relative rotations are
@@ -321,7 +322,6 @@ def _triplet_loss_fp32(
             # pair's angle weighs by the parallax it measures (its baseline over the scene's depth):
             # a short baseline has no direction to teach, and the angle's gradient on the centres
             # (1 / baseline) stays bounded.
-            known = flat(t_weight) > 0
             t_net = pair_poses(_centres_only(T_cons, pose_out, depths[0], Kf, cfg.use_dsc))[:, :3, 3]
             t_ref = rel_boot[:, :3, 3]
             ang = translation_direction_angle(t_net, t_ref)
@@ -329,15 +329,14 @@ def _triplet_loss_fp32(
             # it below 1 / D also where the DSC's own baseline is (nearly) zero
             baseline = torch.minimum(t_net.detach().norm(dim=-1), t_ref.norm(dim=-1))
             weighted = ang * baseline * flat(t_weight)
-            boot_parts["L_dir"] = (torch.where(known, weighted, torch.zeros_like(ang)).sum()
-                                   / known.sum().clamp(min=1))
+            boot_parts["L_dir"] = (torch.where(measured, weighted, torch.zeros_like(ang)).sum()
+                                   / measured.sum().clamp(min=1))
         with torch.no_grad():
             t_b, r_b = geo.pose_errors(rel_boot, torch.eye(4, dtype=T.dtype, device=T.device))
             t_d, r_d = geo.pose_errors(rel_net.detach(), rel_boot)
             boot_diag = {"boot_warps": float(boot.warps), "boot_rel_trans": float(t_b.mean()),
                          "boot_rel_rot_deg": float(r_b.mean()), "dsc_boot_trans": float(t_d.mean()),
                          "dsc_boot_rot_deg": float(r_d.mean())}
-            measured = flat(t_weight) > 0
             if bool(measured.any()):
                 a_d = translation_direction_angle(rel_net[measured, :3, 3], rel_boot[measured, :3, 3])
                 boot_diag["dsc_boot_dir_deg"] = float(torch.rad2deg(a_d).median())
