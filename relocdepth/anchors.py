@@ -39,6 +39,11 @@ LINK_WIDTH = 640
 # At most this many query frames per registered sequence (each with VOConfig.links_per_frame links,
 # ~0.2 s each at 640x480): a long sequence is queried sparser.
 LINK_QUERIES = 75
+# Linked anchors are turned (build_linked_anchors) only when at least this fraction of the measured
+# pairs agree with the fitted turn. On the demo scene the DSC network's directions agreed 34-56 % at
+# steps 500-1000 from random init (turning then set relative pose back) and 71-73 % from step 1200
+# on (turning then halved the gap): README, trial 19. TrainConfig.anchor_turn_agreement's default.
+TURN_MIN_AGREEMENT = 0.65
 
 
 @dataclass
@@ -53,7 +58,8 @@ class Anchors:
     registration: list[tuple[int, int]]
     seconds: float
     turn_deg: float | None = None  # linked anchors: the angle their centres were turned by (None: not turned)
-    turn_pairs: int = 0  # ... and the measured pairs that fixed it
+    turn_pairs: int = 0  # ... the measured pairs that agree with the fitted turn (within DIRECTION_MAX_DEG)
+    turn_measured: int = 0  # ... out of this many measured pairs (too few agreeing: not turned)
 
 
 def sequences_of(frames: ImageFrames) -> list[list[int]]:
@@ -163,7 +169,8 @@ def link_size(width: int, height: int) -> tuple[int, int]:
 
 
 def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, int],
-                         cfg: VOConfig | None = None, turn: bool = True) -> Anchors:
+                         cfg: VOConfig | None = None, turn: bool = True,
+                         min_agreement: float = TURN_MIN_AGREEMENT) -> Anchors:
     """World poses of every training frame: ``poses``' (in the trainer the networks',
     :func:`network_poses`, of the images at ``size`` (W, H), un-augmented), each sequence after the
     first registered into the first one's world by links between similar frames matched on the
@@ -173,7 +180,10 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     With ``turn``, the centres are then turned (about their mean, orientations kept) so that the
     displacements between frames a few apart point where the frames' orientations and the pairs'
     measured two-view directions say (:func:`direction_turn` over :func:`direction_pairs` of the
-    images at ``size``): the network's positions and orientations in one world."""
+    images at ``size``): the network's positions and orientations in one world. Only when at
+    least ``min_agreement`` of the measured pairs agree with the fitted turn (within
+    :data:`DIRECTION_MAX_DEG`): a network whose own directions are mostly noise gives a turn that
+    is noise too, and turning its anchors by it set the demo's training back (README, trial 19)."""
     import cv2
 
     t0 = time.perf_counter()
@@ -212,9 +222,11 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
         from relocdepth.eval_geometry import rotation_angle_deg
 
         W_turn, kept = direction_turn(out, measured)
-        out = turn_centres(out, W_turn).astype(np.float32)
-        turn_deg = float(rotation_angle_deg(W_turn))
-    return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, turn_deg, kept)
+        if kept and kept >= min_agreement * len(measured):
+            out = turn_centres(out, W_turn).astype(np.float32)
+            turn_deg = float(rotation_angle_deg(W_turn))
+    return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, turn_deg, kept,
+                   len(measured) if turn else 0)
 
 
 # The linked anchors' world turned to agree with the measured translation directions: a map whose

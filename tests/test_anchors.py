@@ -14,6 +14,7 @@ import torch
 from reloc_fixtures import FixedDSC
 
 from relocdepth import geometry as geo
+from relocdepth.anchors import TURN_MIN_AGREEMENT
 from relocdepth.errors import UserError
 from relocdepth.eval_geometry import rotation_angle_deg
 from relocdepth.method import Bootstrap, MethodConfig, triplet_loss
@@ -268,7 +269,8 @@ def test_linked_anchors_turn_the_centres_to_the_measured_directions(synth_shards
     kept): the protocol's centre fit then turns the world 8 deg from the orientations. The linked
     anchors measure the training pairs' two-view directions on the images (2 deg median error at
     128x96 on this scene) and turn the centres back: on the first sequence (which the links leave
-    as given) the gap falls from 8 to under 3.5 deg."""
+    as given) the gap falls from 8 to under 3.5 deg. Asked for more agreeing pairs than there are,
+    the build keeps the centres as they are and says how many agreed."""
     from relocdepth.anchors import build_linked_anchors, sequences_of, turn_centres
     from relocdepth.data import ImageFrames
     from relocdepth.evaluate import alignment_gap_deg, fit_sim3
@@ -293,6 +295,12 @@ def test_linked_anchors_turn_the_centres_to_the_measured_directions(synth_shards
         gaps[turn] = alignment_gap_deg(fit.R, a.T_wc[ix, :3, :3].astype(np.float64), T_gt[ix, :3, :3])
     assert gaps[False] == pytest.approx(rotation_angle_deg(W0), abs=0.5)
     assert gaps[True] < 3.5 and a.turn_pairs >= 20, (gaps, a.turn_pairs, a.turn_deg)
+    assert a.turn_measured >= a.turn_pairs and a.turn_pairs >= 0.65 * a.turn_measured  # the default gate passed
+    calls = iter(range(len(seqs)))
+    strict = build_linked_anchors(frames, poses, (128, 96), turn=True,
+                                  min_agreement=(a.turn_pairs + 1) / a.turn_measured)
+    assert strict.turn_deg is None and (strict.turn_pairs, strict.turn_measured) == (a.turn_pairs, a.turn_measured)
+    assert np.allclose(strict.T_wc[seqs[0]], net[seqs[0]], atol=1e-5)  # not turned
 
 
 def test_trainer_builds_linked_anchors_from_its_own_networks(synth_shards: Path, tmp_path: Path) -> None:
@@ -300,13 +308,17 @@ def test_trainer_builds_linked_anchors_from_its_own_networks(synth_shards: Path,
     from relocdepth.train import train
 
     run = tmp_path / "run"
-    train(synth_shards, run, _cfg(anchor="linked", max_steps=2))
+    train(synth_shards, run, _cfg(anchor="linked", max_steps=2, anchor_turn_agreement=0.0))
     log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
     built = [d for d in log if d.get("event") == "anchors"]
     assert [d["step"] for d in built] == [1] and built[0]["keyframes"] == 0  # no odometry
     assert len(built[0]["registration"]) == 1  # the second training sequence, linked to the first
-    assert built[0]["turn_deg"] is not None and built[0]["turn_pairs"] >= 0  # turned by default
+    assert built[0]["turn_deg"] is not None and built[0]["turn_measured"] >= built[0]["turn_pairs"] >= 0  # turned
     assert _cfg(anchor="linked", anchor_turn=False).anchor_turn is False
+    assert _cfg(anchor="linked").anchor_turn_agreement == pytest.approx(TURN_MIN_AGREEMENT)  # one default
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(UserError, match="anchor-turn-agreement"):
+            _cfg(anchor="linked", anchor_turn_agreement=bad)
     assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
     T = ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["T_wc"]
     assert T.shape == (48, 4, 4) and torch.isfinite(T).all() and not torch.allclose(T[0], torch.eye(4))
