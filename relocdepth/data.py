@@ -179,7 +179,8 @@ class TripletData:
     bootstrap's pairs from the middle frame to each source (``relocdepth.twoview.bootstrap_pair`` on
     the un-jittered images): ``two_view_T (2, 4, 4)``, ``two_view_points (2, N, 3)``, ``two_view_ok (2,)``.
     With ``track_width`` the pairs are tracked on the stored images down-sized to at most that
-    width (0: on the training images), their points mapped into the middle frame's crop (NaN rows
+    width (0: on the training images; also when that is no wider than the middle frame's resized
+    crop: a scene stored at the training size is tracked on its crops), their points mapped into the middle frame's crop (NaN rows
     where they fall outside it; a measured pair left without any is a failed one), and the
     rotation-only threshold scaled to the tracked size (the same parallax counts as rotation only).
     """
@@ -218,7 +219,10 @@ class TripletData:
             "is_global": t.is_global,
         }
         if self.two_view:
-            pairs = (self._tracked_pairs(idx, raws, boxes) if self.track_width
+            # The stored images only where they are finer than the middle frame's resized crop: at
+            # the training size the crops tracked better (README, Quality: the demo scene).
+            finer = self.track_width and min(self.track_width, raws[1].shape[1]) > boxes[1][0]
+            pairs = (self._tracked_pairs(idx, raws, boxes) if finer
                      else [_bootstrap_pair(images[1], images[i], Ks[1], Ks[i]) for i in (0, 2)])
             out["two_view_T"] = np.stack([p[0] for p in pairs])
             out["two_view_points"] = np.stack([p[1] for p in pairs])

@@ -30,8 +30,9 @@ _CPU: dict[str, Any] = {"size": (128, 96), "window": 3, "lr": 3e-4, "photometric
 # L_p at each decoder layer's resolution, the paper's (its steps take 0.64-0.69x the time here).
 # The pairs are tracked on the stored images up to 640 px wide: on the real walk-through depth
 # reached the ground-truth-pose oracle's level that way at steps 181-250 (not steadily: 0.265 at
-# 345) and stayed at the constant level tracked on the 192x128 crops (README, Quality). A scene stored at the training size (the demo's) is tracked
-# at that size, un-augmented.
+# 345) and stayed at the constant level tracked on the 192x128 crops (README, Quality). A scene
+# stored at the training size (the demo's) is tracked on its crops: there the stored frames tracked
+# worse (README, Quality: the demo's depth, and cpu-linked's pose at step 1000).
 _BOOTSTRAP: dict[str, Any] = {"bootstrap": "essential", "bootstrap_steps": 2000, "bootstrap_fade_steps": 500,
                               "window": 10, "loss_resolution": "decoder", "bootstrap_track_width": 640}
 

@@ -78,6 +78,19 @@ def test_tracked_pairs_give_the_crop_true_rotations_and_baselines(synth_shards_3
         assert np.median(baseline) == pytest.approx(np.linalg.norm(truth[:3, 3]), rel=max_rel), track_width
 
 
+def test_a_scene_stored_at_the_training_size_is_tracked_on_its_crops(synth_shards: Path) -> None:
+    """The test scene is stored at 128x96, the training size: the stored images are no finer than
+    the crops, so with a tracking width the pairs are the crops' own (the same as without one);
+    asked to track at 64 px, coarser than the crops, likewise."""
+    frames = ImageFrames.open(synth_shards)
+    assert frames.frames[0].intrinsics.width == 128
+    t = Triplet(2, 5, 8, aug_seed=3, is_global=False, epoch=0, position=0)
+    items = [TripletData(frames, AugmentConfig(128, 96), two_view=True, track_width=w)[t] for w in (0, 640, 64)]
+    for item in items[1:]:
+        for key in ("two_view_T", "two_view_points", "two_view_ok"):
+            np.testing.assert_array_equal(item[key], items[0][key])
+
+
 def test_track_width_must_not_be_negative(synth_shards_320: Path) -> None:
     from relocdepth.train import TrainConfig
 
