@@ -40,9 +40,9 @@ LINK_WIDTH = 640
 # ~0.2 s each at 640x480): a long sequence is queried sparser.
 LINK_QUERIES = 75
 # Linked anchors are turned (build_linked_anchors) only when at least this fraction of the measured
-# pairs agree with the fitted turn. On the demo scene the DSC network's directions agreed 34-56 % at
-# steps 500-1000 from random init (turning then set relative pose back) and 71-73 % from step 1200
-# on (turning then halved the gap): README, trial 19. TrainConfig.anchor_turn_agreement's default.
+# pairs agree with the fitted turn. On the demo scene the DSC network's directions agreed 34-61 % up
+# to step 1200 from random init, where the fitted turn missed the true one by a third, and 71-73 %
+# after 1200 steps, where turning reached rung 3 (README, trial 19). TrainConfig.anchor_turn_agreement's default.
 TURN_MIN_AGREEMENT = 0.65
 
 
@@ -183,7 +183,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     images at ``size``): the network's positions and orientations in one world. Only when at
     least ``min_agreement`` of the measured pairs agree with the fitted turn (within
     :data:`DIRECTION_MAX_DEG`): a network whose own directions are mostly noise gives a turn that
-    is noise too, and turning its anchors by it set the demo's training back (README, trial 19)."""
+    is noise too (README, trial 19)."""
     import cv2
 
     t0 = time.perf_counter()
