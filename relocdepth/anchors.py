@@ -42,7 +42,8 @@ LINK_QUERIES = 75
 # Linked anchors are turned (build_linked_anchors) only when at least this fraction of the measured
 # pairs agree with the fitted turn. On the demo scene the DSC network's directions agreed 34-61 % up
 # to step 1200 from random init, where the fitted turn missed the true one by a third, and 71-73 %
-# after 1200 steps, where turning reached rung 3 (README, trial 19). TrainConfig.anchor_turn_agreement's default.
+# after 1200 steps, where turning reached rung 3 (README, trial 19). The default of
+# TrainConfig.anchor_turn_agreement.
 TURN_MIN_AGREEMENT = 0.65
 
 
@@ -226,7 +227,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
             out = turn_centres(out, W_turn).astype(np.float32)
             turn_deg = float(rotation_angle_deg(W_turn))
     return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, turn_deg, kept,
-                   len(measured) if turn else 0)
+                   len(measured))
 
 
 # The linked anchors' world turned to agree with the measured translation directions: a map whose

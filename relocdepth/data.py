@@ -180,8 +180,8 @@ class TripletData:
     the un-jittered images): ``two_view_T (2, 4, 4)``, ``two_view_points (2, N, 3)``, ``two_view_ok (2,)``.
     With ``track_width`` the pairs are tracked on the stored images down-sized to at most that
     width (0: on the training images; also when that is no wider than the middle frame's resized
-    crop: a scene stored at the training size is tracked on its crops), their points mapped into the middle frame's crop (NaN rows
-    where they fall outside it; a measured pair left without any is a failed one), and the
+    crop: a scene stored at the training size is tracked on its crops), their points mapped into
+    the middle frame's crop (NaN rows where they fall outside it; a measured pair left without any is a failed one), and the
     rotation-only threshold scaled to the tracked size (the same parallax counts as rotation only).
     """
 

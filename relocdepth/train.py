@@ -165,7 +165,8 @@ class TrainConfig:
             raise UserError(f"--anchor {self.anchor} needs a --bootstrap (the anchors need the depth it "
                             "teaches first, and their weight fades with it)")
         if not 0.0 <= self.anchor_turn_agreement <= 1.0:  # NaN fails too
-            raise UserError(f"--anchor-turn-agreement must be a fraction in [0, 1], not {self.anchor_turn_agreement}")
+            raise UserError("--anchor-turn-agreement must be a fraction in [0, 1], "
+                            f"not {self.anchor_turn_agreement}")
         if self.anchor_step < 0 or self.anchor_every < 0 or self.w_anchor < 0:
             raise UserError("--anchor-step, --anchor-every and --w-anchor must be >= 0")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
@@ -663,10 +664,12 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
     m = tr.cfg.method
     if tr.cfg.anchor == "linked":
         a = A.build_linked_anchors(tr.frames, lambda ims, K: A.network_poses(tr.nets, ims, K, tr.device),
-                                   tr.cfg.size, turn=tr.cfg.anchor_turn, min_agreement=tr.cfg.anchor_turn_agreement)
+                                   tr.cfg.size, turn=tr.cfg.anchor_turn,
+                                   min_agreement=tr.cfg.anchor_turn_agreement)
         how = f"the DSC's own poses of {len(a.T_wc)} frames"
         if a.turn_deg is not None:
-            how += f", centres turned {a.turn_deg:.2f} deg to {a.turn_pairs} of {a.turn_measured} measured directions"
+            how += (f", centres turned {a.turn_deg:.2f} deg to {a.turn_pairs} of {a.turn_measured} "
+                    "measured directions")
         elif a.turn_measured:
             how += (f", centres not turned: {a.turn_pairs} of {a.turn_measured} measured directions agree "
                     f"(under {tr.cfg.anchor_turn_agreement:.0%})")
@@ -678,7 +681,8 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
     reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
     log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
-                 registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs, turn_measured=a.turn_measured)
+                 registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
+                 turn_measured=a.turn_measured)
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
