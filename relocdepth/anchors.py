@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -45,6 +45,12 @@ LINK_QUERIES = 75
 # after 1200 steps, where turning reached rung 3 (README, trial 19). The default of
 # TrainConfig.anchor_turn_agreement.
 TURN_MIN_AGREEMENT = 0.65
+# A sequence counts as linked only when at least this many of its links agree on where it lies
+# (the robust mean's inliers, the medoid included); fewer is no consensus. On the real walk-through
+# (192x128, step 600) the network's links agreed 1 of 45, 1 of 45 and 1 of 24, and the sequences so
+# placed were 65 deg apart in orientation while each was within 1-20 deg of the truth on its own;
+# the demo scene's agree 45-75 of 225 (README, trial 20).
+MIN_LINK_INLIERS = 3
 
 
 @dataclass
@@ -61,6 +67,9 @@ class Anchors:
     turn_deg: float | None = None  # linked anchors: the angle their centres were turned by (None: not turned)
     turn_pairs: int = 0  # ... the measured pairs that agree with the fitted turn (within DIRECTION_MAX_DEG)
     turn_measured: int = 0  # ... out of this many measured pairs (too few agreeing: not turned)
+    # linked anchors: the sequences (1 = the second) whose links agree too little (MIN_LINK_INLIERS)
+    # to place them in the first one's world; such anchors are not to be used
+    unlinked: list[int] = field(default_factory=list)
 
 
 def sequences_of(frames: ImageFrames) -> list[list[int]]:
@@ -184,7 +193,10 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     images at ``size``): the network's positions and orientations in one world. Only when at
     least ``min_agreement`` of the measured pairs agree with the fitted turn (within
     :data:`DIRECTION_MAX_DEG`): a network whose own directions are mostly noise gives a turn that
-    is noise too (README, trial 19)."""
+    is noise too (README, trial 19).
+
+    A sequence whose links agree fewer than :data:`MIN_LINK_INLIERS` times is not placed by
+    them: it is listed in ``unlinked``, nothing is turned, and the anchors are not to be used."""
     import cv2
 
     t0 = time.perf_counter()
@@ -218,8 +230,9 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     out = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T in zip(seqs, world):
         out[ix] = T.astype(np.float32)
+    unlinked = [k for k, r in enumerate(regs, 1) if r.inliers < MIN_LINK_INLIERS]
     turn_deg, kept = None, 0
-    if turn:
+    if turn and not unlinked:
         from relocdepth.eval_geometry import rotation_angle_deg
 
         W_turn, kept = direction_turn(out, measured)
@@ -227,7 +240,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
             out = turn_centres(out, W_turn).astype(np.float32)
             turn_deg = float(rotation_angle_deg(W_turn))
     return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, turn_deg, kept,
-                   len(measured))
+                   len(measured) if not unlinked else 0, unlinked)
 
 
 # The linked anchors' world turned to agree with the measured translation directions: a map whose

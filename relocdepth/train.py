@@ -337,7 +337,7 @@ class RunState:
     stop: str | None = None  # why the loop ended early
     timing: dict[str, float] = field(default_factory=dict)
     anchors: Any = None  # (N, 4, 4) float32 tensor: the DSC's anchors (TrainConfig.anchor), else None
-    anchors_step: int | None = None  # the step they were built at
+    anchors_step: int | None = None  # the step they were built at (or a build was not used)
 
 
 @dataclass
@@ -667,7 +667,13 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
                                    tr.cfg.size, turn=tr.cfg.anchor_turn,
                                    min_agreement=tr.cfg.anchor_turn_agreement)
         how = f"the DSC's own poses of {len(a.T_wc)} frames"
-        if a.turn_deg is not None:
+        if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
+            weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
+            log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
+                        "(%s); %s", state.step, len(a.unlinked), len(a.registration) + 1, A.MIN_LINK_INLIERS,
+                        weak, "no anchors yet" if state.anchors is None else
+                        f"keeping those of step {state.anchors_step}")
+        elif a.turn_deg is not None:
             how += (f", centres turned {a.turn_deg:.2f} deg to {a.turn_pairs} of {a.turn_measured} "
                     "measured directions")
         elif a.turn_measured:
@@ -677,12 +683,15 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size)
         how = f"odometry of {len(a.T_wc)} frames ({a.keyframes} keyframes, {a.lost} lost)"
-    state.anchors, state.anchors_step = torch.from_numpy(a.T_wc), state.step
-    reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
-    log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
+    used = not a.unlinked
+    state.anchors_step = state.step  # also when not used: the next try comes anchor_every steps on
+    if used:
+        state.anchors = torch.from_numpy(a.T_wc)
+        reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
+        log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
                  registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
-                 turn_measured=a.turn_measured)
+                 turn_measured=a.turn_measured, used=used)
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:

@@ -14,7 +14,7 @@ import torch
 from reloc_fixtures import FixedDSC
 
 from relocdepth import geometry as geo
-from relocdepth.anchors import TURN_MIN_AGREEMENT
+from relocdepth.anchors import MIN_LINK_INLIERS, TURN_MIN_AGREEMENT
 from relocdepth.errors import UserError
 from relocdepth.eval_geometry import rotation_angle_deg
 from relocdepth.method import Bootstrap, MethodConfig, triplet_loss
@@ -212,7 +212,7 @@ def test_linked_anchors_put_every_sequence_in_the_first_ones_world(synth_shards_
 
     a = build_linked_anchors(frames, poses, (128, 96), turn=False)  # the turn: tested below
     assert a.T_wc.shape == (len(frames), 4, 4) and a.T_wc.dtype == np.float32 and a.turn_deg is None
-    assert len(a.registration) == len(seqs) - 1 and a.registration[0][0] >= 3
+    assert len(a.registration) == len(seqs) - 1 and a.registration[0][0] >= MIN_LINK_INLIERS and a.unlinked == []
     assert np.allclose(a.T_wc[seqs[0]], (world @ T_gt[seqs[0]]).astype(np.float32), atol=1e-5)
     ix = seqs[1]
     truth = world @ T_gt[ix]
@@ -220,6 +220,53 @@ def test_linked_anchors_put_every_sequence_in_the_first_ones_world(synth_shards_
     err_r = rotation_angle_deg(np.swapaxes(a.T_wc[ix, :3, :3], -1, -2) @ truth[:, :3, :3])
     err_t = np.linalg.norm(a.T_wc[ix, :3, 3] - truth[:, :3, 3], axis=1)
     assert before.min() > 9.0 and err_r.max() < 3.0 and err_t.max() < 0.05, (err_r.max(), err_t.max())
+
+
+def test_a_sequence_its_links_do_not_agree_on_is_not_placed(synth_shards_320: Path) -> None:
+    """The second sequence's own poses are noise (every frame turned at random by 57-178 deg):
+    each link then puts that sequence somewhere else, fewer than MIN_LINK_INLIERS agree, and the
+    build says so (``unlinked``) instead of placing it by one link, and turns nothing."""
+    from relocdepth.anchors import build_linked_anchors, sequences_of
+    from relocdepth.data import ImageFrames
+
+    frames = ImageFrames.open(synth_shards_320)
+    T_gt, depth_gt = _gt(synth_shards_320, frames)
+    seqs = sequences_of(frames)
+    world = np.linalg.inv(T_gt[seqs[0][0]]) @ T_gt
+    noisy = world.copy()
+    rng = np.random.default_rng(0)
+    for i in seqs[1]:
+        w = rng.normal(size=3)
+        w *= rng.uniform(1.0, 3.1) / np.linalg.norm(w)
+        noisy[i, :3, :3] = geo.so3_exp(torch.tensor(w[None], dtype=torch.float64))[0].numpy() @ noisy[i, :3, :3]
+    calls = iter(range(len(seqs)))
+
+    def poses(images: list[np.ndarray], K: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        ix = seqs[next(calls)]
+        return noisy[ix], [cv2.resize(depth_gt[i], (128, 96), interpolation=cv2.INTER_NEAREST) for i in ix]
+
+    a = build_linked_anchors(frames, poses, (128, 96), turn=True, min_agreement=0.0)
+    assert a.unlinked == [1] and a.registration[0][0] < MIN_LINK_INLIERS, a.registration
+    assert a.turn_deg is None and a.turn_measured == 0  # nothing turned on a world that is not one
+
+
+def test_trainer_does_not_use_anchors_without_consensus(synth_shards: Path, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Links that cannot agree enough (the bar raised past any count): the build is logged as not
+    used, no step carries the anchor term, the next try comes ``anchor_every`` steps on (not every
+    step), and the checkpoint holds no anchors."""
+    from relocdepth import anchors as A
+    from relocdepth import checkpoint as ckpt_io
+    from relocdepth.train import train
+
+    monkeypatch.setattr(A, "MIN_LINK_INLIERS", 10**6)
+    run = tmp_path / "run"
+    train(synth_shards, run, _cfg(anchor="linked", max_steps=4, anchor_every=2, anchor_turn_agreement=0.0))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    built = [d for d in log if d.get("event") == "anchors"]
+    assert [(d["step"], d["used"]) for d in built] == [(1, False), (3, False)]
+    assert not any("L_anchor" in d["parts"] for d in log if "loss" in d)
+    assert ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"] is None
 
 
 def _walk(n: int = 60) -> np.ndarray:
