@@ -671,8 +671,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
             weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
             log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
                         "(%s); %s", state.step, len(a.unlinked), len(a.registration) + 1, A.MIN_LINK_INLIERS,
-                        weak, "no anchors yet" if state.anchors is None else
-                        f"keeping those of step {state.anchors_step}")
+                        weak, "no anchors yet" if state.anchors is None else "keeping the previous ones")
         elif a.turn_deg is not None:
             how += (f", centres turned {a.turn_deg:.2f} deg to {a.turn_pairs} of {a.turn_measured} "
                     "measured directions")
