@@ -106,8 +106,12 @@ class TrainConfig:
     # keyframe odometry of each sequence (the bootstrap's two-view geometry with the depth
     # network's depth) registered into one world; "linked": the DSC network's own poses, each
     # sequence registered into the first one's world by links between similar frames. Both need a
-    # bootstrap: depth must have learned, and the anchors' weight fades with it.
+    # bootstrap: depth must have learned, and the anchors' weight fades with it (unless anchor_hold).
     anchor: str = "off"
+    # Keep the anchors' weight (and their rebuilds every anchor_every steps) after the bootstrap has
+    # faded out, for the whole run: the DSC's positions stay in its orientations' world after the
+    # hand-over ("linked": each build turns the centres again).
+    anchor_hold: bool = False
     # "linked": turn the anchors' centres so that the frames' displacements point where their
     # orientations and the bootstrap's measured directions say (relocdepth.anchors.direction_turn).
     anchor_turn: bool = True
@@ -302,10 +306,11 @@ def bootstrap_at(cfg: TrainConfig, step: int) -> tuple[bool, float]:
 
 
 def anchor_at(cfg: TrainConfig, step: int) -> float:
-    """Weight of the DSC-vs-anchor term at ``step`` (0 before ``anchor_step`` and without anchors)."""
+    """Weight of the DSC-vs-anchor term at ``step`` (0 before ``anchor_step`` and without anchors;
+    it fades out with the bootstrap unless ``anchor_hold``)."""
     if cfg.anchor == "off" or step < cfg.anchor_step:
         return 0.0
-    return cfg.w_anchor * _bootstrap_fraction(cfg, step)
+    return cfg.w_anchor * (1.0 if cfg.anchor_hold else _bootstrap_fraction(cfg, step))
 
 
 def anchor_due(cfg: TrainConfig, step: int, built_at: int | None) -> bool:
