@@ -3,6 +3,7 @@ the DSC-vs-anchor term, its schedule, and the trainer's build, checkpoint and re
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -98,12 +99,31 @@ def test_anchor_schedule_and_options() -> None:
     once = TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_step": 3})
     assert anchor_due(once, 3, None) and not anchor_due(once, 9, 3)
     assert anchor_at(TrainConfig(), 100) == 0.0
+    held = dataclasses.replace(cfg, anchor_hold=True)  # kept after the fade, and still rebuilt
+    assert [anchor_at(held, s) for s in (2, 3, 11, 14, 1000)] == [0.0, 2.0, 2.0, 2.0, 2.0]
+    assert not anchor_due(held, 17, 13) and anchor_due(held, 18, 13) and anchor_due(held, 1000, 995)
     with pytest.raises(UserError, match="needs a --bootstrap"):
         TrainConfig.from_dict({"anchor": "vo"})
     with pytest.raises(UserError, match="--anchor must be one of"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "gps"})
     with pytest.raises(UserError, match=">= 0"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "w_anchor": -1})
+
+
+def test_held_anchors_outlast_the_bootstrap_in_the_trainer(synth_shards: Path, tmp_path: Path) -> None:
+    """A bootstrap that has faded out by step 3: the anchors' term goes with it, unless held; held,
+    the anchors are rebuilt after the fade and every later step carries their term."""
+    from relocdepth.train import train
+
+    for hold in (False, True):
+        run = tmp_path / f"run-{hold}"
+        train(synth_shards, run, _cfg(max_steps=5, bootstrap_steps=2, bootstrap_fade_steps=1, anchor_every=2,
+                                      anchor_hold=hold))
+        log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+        built = [d["step"] for d in log if d.get("event") == "anchors"]
+        anchored = [d["step"] for d in log if "loss" in d and "L_anchor" in d["parts"]]
+        assert built == ([1, 3] if hold else [1])
+        assert anchored == ([2, 3, 4, 5] if hold else [2, 3])
 
 
 def _gt(shards: Path, frames) -> tuple[np.ndarray, list[np.ndarray]]:
