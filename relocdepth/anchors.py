@@ -67,8 +67,8 @@ class Anchors:
     turn_deg: float | None = None  # linked anchors: the angle their centres were turned by (None: not turned)
     turn_pairs: int = 0  # ... the measured pairs that agree with the fitted turn (within DIRECTION_MAX_DEG)
     turn_measured: int = 0  # ... out of this many measured pairs (too few agreeing: not turned)
-    # linked anchors: the sequences (1 = the second) whose links agree too little (MIN_LINK_INLIERS)
-    # to place them in the first one's world; such anchors are not to be used
+    # the sequences (1 = the second) whose links agree too little (MIN_LINK_INLIERS) to place them in
+    # the first one's world; such anchors are not to be used
     unlinked: list[int] = field(default_factory=list)
 
 
@@ -105,7 +105,8 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
                   cfg: VOConfig | None = None) -> Anchors:
     """World poses of every training frame from odometry at ``size`` (W, H: images resized, as the
     trainer's un-augmented input) with ``depth``'s maps (in the trainer: the depth network's,
-    :func:`network_depth`)."""
+    :func:`network_depth`). A sequence registered by fewer than :data:`MIN_LINK_INLIERS` agreeing
+    links is listed in ``unlinked``, and the anchors are not to be used."""
     t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
@@ -119,8 +120,9 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
     T = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T_seq in zip(seqs, w.world):
         T[ix] = T_seq.astype(np.float32)
+    unlinked = [k for k, r in enumerate(w.regs, 1) if r.inliers < MIN_LINK_INLIERS]
     return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
-                   [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0)
+                   [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked)
 
 
 # World poses (N, 4, 4) and depth maps (H, W) of frames, from their images at the training size and

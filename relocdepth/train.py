@@ -672,12 +672,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
                                    tr.cfg.size, turn=tr.cfg.anchor_turn,
                                    min_agreement=tr.cfg.anchor_turn_agreement)
         how = f"the DSC's own poses of {len(a.T_wc)} frames"
-        if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
-            weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
-            log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
-                        "(%s); %s", state.step, len(a.unlinked), len(a.registration) + 1, A.MIN_LINK_INLIERS,
-                        weak, "no anchors yet" if state.anchors is None else "keeping the previous ones")
-        elif a.turn_deg is not None:
+        if a.turn_deg is not None:
             how += (f", centres turned {a.turn_deg:.2f} deg to {a.turn_pairs} of {a.turn_measured} "
                     "measured directions")
         elif a.turn_measured:
@@ -687,6 +682,11 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size)
         how = f"odometry of {len(a.T_wc)} frames ({a.keyframes} keyframes, {a.lost} lost)"
+    if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
+        weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
+        log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
+                    "(%s); %s", state.step, len(a.unlinked), len(a.registration) + 1, A.MIN_LINK_INLIERS,
+                    weak, "no anchors yet" if state.anchors is None else "keeping the previous ones")
     used = not a.unlinked
     state.anchors_step = state.step  # also when not used: the next try comes anchor_every steps on
     if used:

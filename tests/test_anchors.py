@@ -270,7 +270,8 @@ def test_a_sequence_its_links_do_not_agree_on_is_not_placed(synth_shards_320: Pa
     assert a.turn_deg is None and a.turn_measured == 0  # nothing turned on a world that is not one
 
 
-def test_trainer_does_not_use_anchors_without_consensus(synth_shards: Path, tmp_path: Path,
+@pytest.mark.parametrize("source", ["linked", "vo"])
+def test_trainer_does_not_use_anchors_without_consensus(source: str, synth_shards: Path, tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """Links that cannot agree enough (the bar raised past any count): the build is logged as not
     used, no step carries the anchor term, the next try comes ``anchor_every`` steps on (not every
@@ -281,7 +282,7 @@ def test_trainer_does_not_use_anchors_without_consensus(synth_shards: Path, tmp_
 
     monkeypatch.setattr(A, "MIN_LINK_INLIERS", 10**6)
     run = tmp_path / "run"
-    train(synth_shards, run, _cfg(anchor="linked", max_steps=4, anchor_every=2, anchor_turn_agreement=0.0))
+    train(synth_shards, run, _cfg(anchor=source, max_steps=4, anchor_every=2, anchor_turn_agreement=0.0))
     log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
     built = [d for d in log if d.get("event") == "anchors"]
     assert [(d["step"], d["used"]) for d in built] == [(1, False), (3, False)]
