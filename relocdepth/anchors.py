@@ -72,6 +72,12 @@ class Anchors:
     unlinked: list[int] = field(default_factory=list)
 
 
+def unlinked_sequences(regs: list[Any]) -> list[int]:
+    """The sequences (1 = the second) whose registration ``regs`` (one per sequence after the
+    first, with ``inliers``) has fewer than :data:`MIN_LINK_INLIERS` agreeing links."""
+    return [k for k, r in enumerate(regs, 1) if r.inliers < MIN_LINK_INLIERS]
+
+
 def sequences_of(frames: ImageFrames) -> list[list[int]]:
     """Indices of ``frames`` per sequence, in frame order; the sequences in order of first appearance."""
     by_seq: dict[str, list[int]] = {}
@@ -120,7 +126,7 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
     T = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T_seq in zip(seqs, w.world):
         T[ix] = T_seq.astype(np.float32)
-    unlinked = [k for k, r in enumerate(w.regs, 1) if r.inliers < MIN_LINK_INLIERS]
+    unlinked = unlinked_sequences(w.regs)
     return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
                    [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked)
 
@@ -232,7 +238,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     out = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T in zip(seqs, world):
         out[ix] = T.astype(np.float32)
-    unlinked = [k for k, r in enumerate(regs, 1) if r.inliers < MIN_LINK_INLIERS]
+    unlinked = unlinked_sequences(regs)
     turn_deg, kept = None, 0
     if turn and not unlinked:
         from relocdepth.eval_geometry import rotation_angle_deg
