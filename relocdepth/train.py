@@ -171,6 +171,8 @@ class TrainConfig:
         if not 0.0 <= self.anchor_turn_agreement <= 1.0:  # NaN fails too
             raise UserError("--anchor-turn-agreement must be a fraction in [0, 1], "
                             f"not {self.anchor_turn_agreement}")
+        if self.anchor_hold and self.anchor == "off":
+            raise UserError("--anchor-hold needs an --anchor (it keeps the anchors' weight after the bootstrap)")
         if self.anchor_step < 0 or self.anchor_every < 0 or self.w_anchor < 0:
             raise UserError("--anchor-step, --anchor-every and --w-anchor must be >= 0")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:

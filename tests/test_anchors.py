@@ -104,6 +104,8 @@ def test_anchor_schedule_and_options() -> None:
     assert not anchor_due(held, 17, 13) and anchor_due(held, 18, 13) and anchor_due(held, 1000, 995)
     with pytest.raises(UserError, match="needs a --bootstrap"):
         TrainConfig.from_dict({"anchor": "vo"})
+    with pytest.raises(UserError, match="--anchor-hold needs an --anchor"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor_hold": True})
     with pytest.raises(UserError, match="--anchor must be one of"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "gps"})
     with pytest.raises(UserError, match=">= 0"):
