@@ -51,7 +51,11 @@ RECIPES: dict[str, dict[str, Any]] = {
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
     # into one world (built once its relative poses are right, step 600, then every 300 steps).
-    "cpu-linked": {**_CPU, **_BOOTSTRAP, "anchor": "linked", "anchor_step": 600, "anchor_every": 300},
+    # No hand-over within a CPU run: the bootstrap's warps and the anchors stay for 100000 steps.
+    # Handed over (at 1600 or 2000), the DSC's warps doubled the depth error within 100 steps and
+    # the absolute pose was no better; kept, depth stayed (README, Quality: trials 21-22).
+    "cpu-linked": {**_CPU, **_BOOTSTRAP, "anchor": "linked", "anchor_step": 600, "anchor_every": 300,
+                   "bootstrap_steps": 100_000},
     # What `reloc demo` trains (its minutes end well inside the bootstrap).
     "demo": {**_CPU, **_BOOTSTRAP},
 }
