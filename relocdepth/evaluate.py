@@ -119,12 +119,15 @@ def alignment_gap_deg(R_sim3: np.ndarray, R_est: np.ndarray, R_gt: np.ndarray) -
 def baselines_report(
     train_gt: np.ndarray, test_gt: np.ndarray, train_thumbs: np.ndarray, test_thumbs: np.ndarray
 ) -> dict:
-    """The mean-training-pose and thumbnail-retrieval baselines on the test frames."""
+    """The mean-training-pose and thumbnail-retrieval baselines on the test frames, and the
+    nearest-training-centre oracle (how far the test cameras stand from the training ones)."""
     mean = M.mean_pose_baseline(train_gt, len(test_gt))
     retrieved, _ = M.retrieval_baseline(train_thumbs, train_gt, test_thumbs)
+    nearest, _, _ = M.nearest_centre_baseline(train_gt, test_gt)
     return {
         "mean_pose": M.pose_summary(*EG.pose_errors(mean, test_gt)),
         "retrieval": M.pose_summary(*EG.pose_errors(retrieved, test_gt)),
+        "nearest_training_centre": M.pose_summary(*EG.pose_errors(nearest, test_gt)),
     }
 
 
@@ -268,7 +271,8 @@ def evaluate(
     }
     report["outputs"] = _write_outputs(report_path, plots, te, test_al, test_gt, train_gt, pose)
     frames_csv = frames_csv_path(report_path)
-    write_text_atomic(frames_csv, per_frame_csv(te, t_err, r_err))
+    nearest_m = M.nearest_centre_baseline(train_gt, test_gt)[2]
+    write_text_atomic(frames_csv, per_frame_csv(te, t_err, r_err, nearest_m))
     report["outputs"]["frames_csv"] = str(frames_csv)
     validate("report", report, what="evaluation report")
     write_text_atomic(report_path, _dumps(report))
@@ -282,19 +286,21 @@ def frames_csv_path(report_path: Path) -> Path:
     return report_path.with_name(report_path.stem + ".frames.csv")
 
 
-FRAMES_CSV_HEADER = ("sequence", "frame", "t_err_m", "r_err_deg", "confidence")
+FRAMES_CSV_HEADER = ("sequence", "frame", "t_err_m", "r_err_deg", "confidence", "nearest_train_m")
 
 
-def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray) -> str:
-    """CSV text: one row per test frame (errors after the Sim(3), the frame's confidence)."""
+def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m: np.ndarray) -> str:
+    """CSV text: one row per test frame (errors after the Sim(3), the frame's confidence, and the
+    distance from its true camera centre to the nearest training frame's)."""
     import csv
     import io
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(FRAMES_CSV_HEADER)
-    for seq, frame, t, r, c in zip(te.sequences, te.frames, t_err, r_err, te.confidence):
-        w.writerow([seq, frame, f"{t:.6g}", f"{r:.6g}", f"{c:.6g}"])
+    for seq, frame, t, r, c, n in zip(te.sequences, te.frames, t_err, r_err, te.confidence, nearest_m,
+                                      strict=True):
+        w.writerow([seq, frame, f"{t:.6g}", f"{r:.6g}", f"{c:.6g}", f"{n:.6g}"])
     return buf.getvalue()
 
 

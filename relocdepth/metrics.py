@@ -165,6 +165,24 @@ def retrieval_baseline(
     return np.asarray(T_train)[nn], nn
 
 
+def nearest_centre_baseline(
+    T_train: np.ndarray, T_query: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pose of the training frame whose true camera centre is nearest the query's true centre.
+
+    An oracle, not a method: it reads the test frames' ground truth. Its translation error is how
+    far each test camera stands from every training camera, so it tells how much a test sequence
+    asks a network to extrapolate beyond the places it was trained on; a regressor that only
+    recalls training poses does no better.
+    T_train: (N, 4, 4), T_query: (M, 4, 4). Returns (poses (M, 4, 4), index (M,), distance m (M,)).
+    """
+    c_train = np.asarray(T_train, np.float64)[:, :3, 3]
+    c_query = np.asarray(T_query, np.float64)[:, :3, 3]
+    d = np.linalg.norm(c_query[:, None, :] - c_train[None, :, :], axis=2)
+    nn = np.argmin(d, axis=1)
+    return np.asarray(T_train)[nn], nn, d[np.arange(len(nn)), nn]
+
+
 # ----------------------------------------------------------------------------- depth
 
 

@@ -42,6 +42,10 @@ def format_table(report: dict) -> str:
     lines += [
         _pose_row("mean training pose", base["mean_pose"]),
         _pose_row("thumbnail retrieval", base["retrieval"]),
+    ]
+    if "nearest_training_centre" in base:  # older reports lack it
+        lines.append(_pose_row("nearest train centre, oracle", base["nearest_training_centre"]))
+    lines += [
         _pose_row("(train frames, fit residual)", pose["train"]),
         "",
         f"rotation-only alignment: median rotation error {pose['rotation_only']['median_r_deg']:.2f} deg"

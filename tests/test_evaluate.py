@@ -129,6 +129,29 @@ def test_baselines() -> None:
     assert out["mean_pose"]["median_t_m"] == pytest.approx(expect)
 
 
+def test_nearest_centre_baseline_measures_distance_to_training_cameras() -> None:
+    """The oracle picks the training camera nearest each test camera's true centre, whatever the
+    images look like; its translation error is that distance and its rotation error the angle
+    between the two cameras."""
+    train = np.tile(np.eye(4), (5, 1, 1))
+    train[:, 0, 3] = np.arange(5.0)  # centres at x = 0, 1, 2, 3, 4
+    query = np.tile(np.eye(4), (3, 1, 1))
+    query[:, :3, 3] = [[2.3, 0.0, 0.0], [-0.5, 0.0, 0.0], [3.9, 0.4, 0.0]]
+    query[0, :3, :3] = EG.quat_wxyz_to_rotmat(np.r_[np.cos(np.radians(10)), 0.0, np.sin(np.radians(10)), 0.0])
+    poses, idx, dist = M.nearest_centre_baseline(train, query)
+    assert idx.tolist() == [2, 0, 4]
+    np.testing.assert_allclose(dist, [0.3, 0.5, np.hypot(0.1, 0.4)], atol=1e-12)
+    t_err, r_err = EG.pose_errors(poses, query)
+    np.testing.assert_allclose(t_err, dist, atol=1e-12)
+    np.testing.assert_allclose(r_err, [20.0, 0.0, 0.0], atol=1e-6)
+    # in the report: thumbnails that send retrieval to the wrong frames do not move the oracle
+    rng = np.random.default_rng(0)
+    thumbs = np.stack([M.thumbnail(rng.integers(0, 255, (24, 32))) for _ in range(5)])
+    out = baselines_report(train, query, thumbs, thumbs[[0, 4, 0]])
+    assert out["nearest_training_centre"]["median_t_m"] == pytest.approx(np.hypot(0.1, 0.4))
+    assert out["retrieval"]["median_t_m"] == pytest.approx(np.hypot(3.9, 0.4))  # 2.3, 4.5, 3.92 m off
+
+
 def test_report_schema_rejects_missing_fields() -> None:
     with pytest.raises(UserError, match="report"):
         validate("report", {"format": "relocdepth-report"}, what="report")
@@ -276,7 +299,7 @@ def test_per_frame_csv_confidence_ranking_and_evo_ape(
     assert report["outputs"]["frames_csv"] == str(csv_path)
     with csv_path.open(newline="") as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0]) == ["sequence", "frame", "t_err_m", "r_err_deg", "confidence"]
+    assert list(rows[0]) == ["sequence", "frame", "t_err_m", "r_err_deg", "confidence", "nearest_train_m"]
     test = open_dataset(synth_shards).frames("test")
     assert [(r["sequence"], int(r["frame"])) for r in rows] == [(x.sequence, x.frame) for x in test]
     t_csv = np.array([float(r["t_err_m"]) for r in rows])
@@ -291,6 +314,15 @@ def test_per_frame_csv_confidence_ranking_and_evo_ape(
     t_tum, r_tum = EG.pose_errors(T_est, T_gt)
     np.testing.assert_allclose(t_csv, t_tum, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(r_csv, r_tum, rtol=1e-4, atol=1e-3)
+    # each frame's distance to the nearest training camera, from the ground truth
+    ds = open_dataset(synth_shards)
+    train_c = np.stack([ds.read_pose(x) for x in ds.frames("train")])[:, :3, 3]
+    near = np.array([float(r["nearest_train_m"]) for r in rows])
+    expect = np.linalg.norm(T_gt[:, None, :3, 3] - train_c[None], axis=2).min(1)
+    np.testing.assert_allclose(near, expect, rtol=1e-4, atol=1e-5)
+    assert near.min() > 0.0
+    nearest = report["baselines"]["nearest_training_centre"]
+    assert np.median(near) == pytest.approx(nearest["median_t_m"], rel=1e-4)
     test_summary = report["pose"]["test"]
     assert np.median(t_csv) == pytest.approx(test_summary["median_t_m"], rel=1e-4)
     assert 100 * np.mean((t_csv <= 0.10) & (r_csv <= 5.0)) == pytest.approx(test_summary["pct_10cm_5deg"])
