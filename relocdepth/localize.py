@@ -28,6 +28,7 @@ from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
+from relocdepth.refine import RefineConfig, Refiner
 from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
@@ -50,6 +51,9 @@ class LocalizeConfig:
     output: str | None = None  # file to write; None = the caller prints the lines
     batch_size: int = 8
     device: str = "auto"  # auto | cpu | cuda | cuda:N
+    # Shards whose training frames refine each pose (relocdepth.refine); None = the network's pose.
+    refine: str | None = None
+    refine_neighbours: int = 3
 
 
 @dataclass(frozen=True)
@@ -222,11 +226,13 @@ def localize_frames(
     predictor: Predictor, frames: Iterator[Frame], batch_size: int,
     calibrated: Calibrated | None = None, depth: DepthWriter | None = None,
     on_batch: Callable[[list[dict]], None] | None = None, total: int | None = None,
+    refiner: Refiner | None = None,
 ) -> list[dict]:
     """Localize frames in batches; returns one record per frame (see README, localize).
 
     ``on_batch`` gets each batch's records as soon as the batch is done (streaming output);
-    ``total`` (frames expected, if known) sizes the progress report on stderr.
+    ``total`` (frames expected, if known) sizes the progress report on stderr; ``refiner``
+    refines each network pose against its training frames (before any alignment).
     """
     import cv2
 
@@ -242,9 +248,15 @@ def localize_frames(
     def flush() -> None:
         imgs = [f.image for f, _ in batch]
         pred = predictor.predict(imgs, [k for _, k in batch], with_depth=depth is not None)
-        T = apply_sim3_dict(align, pred.T_wc) if align else pred.T_wc
+        T, pairs = pred.T_wc, None
+        if refiner is not None:
+            refined = [refiner.refine(f.image, k, T[i]) for i, (f, k) in enumerate(batch)]
+            T, pairs = np.stack([r[0] for r in refined]), [r[1] for r in refined]
+        T = apply_sim3_dict(align, T) if align else T
         for i, (f, _) in enumerate(batch):
             rec = _record(f, len(records), T[i], pred, i, align is not None)
+            if pairs is not None:
+                rec["refined_pairs"] = pairs[i]
             if depth is not None:
                 h, w = f.image.shape[:2]
                 d = cv2.resize(pred.depth[i] * scale, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -269,6 +281,27 @@ def localize_frames(
         if batch:
             flush()
     return records
+
+
+def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int) -> Refiner:
+    """A :class:`Refiner` whose map is the training frames of ``shards`` (the network's poses of
+    them, predicted here with a progress report)."""
+    from relocdepth.dataset import open_dataset
+    from relocdepth.progress import progress_bar
+
+    if neighbours < 1:
+        raise UserError("--refine-neighbours must be at least 1")
+    ds = open_dataset(shards)
+    recs = [r for r in ds.records if r.split == "train"]
+    if not recs:
+        raise UserError(f"--refine {shards}: the shards have no training frames to refine against")
+    if predictor.meta.get("manifest_hash") != ds.manifest_hash:
+        log.warning("--refine: the checkpoint was trained on other shards than %s", ds.root)
+    with progress_bar("localize", "frames") as bar:
+        task = bar.add_task("map: training frames", total=len(recs))
+        return Refiner.from_images(predictor, lambda i: ds.read_image(recs[i]), [r.intrinsics for r in recs],
+                                   cfg=RefineConfig(neighbours=neighbours),
+                                   on_batch=lambda n: bar.advance(task, n))
 
 
 def format_records(records: list[dict], fmt: str) -> str:
@@ -304,11 +337,12 @@ def localize(
     predictor = Predictor.from_checkpoint(cfg.checkpoint, device=str(pick_device(cfg.device)))
     if cfg.output and Path(cfg.output).is_dir():
         raise UserError(f"--output {cfg.output} is a folder; give a file name")
+    refiner = training_refiner(predictor, cfg.refine, cfg.refine_neighbours) if cfg.refine else None
     depth = DepthWriter(cfg.depth_out) if cfg.depth_out else None
     try:
         stream = None if on_text is None else (lambda recs: on_text(format_records(recs, cfg.format)))
         records = localize_frames(predictor, iter_frames(items), cfg.batch_size, calibrated, depth,
-                                  on_batch=stream, total=count_frames(items))
+                                  on_batch=stream, total=count_frames(items), refiner=refiner)
     except BaseException:
         if depth is not None:
             depth.abort()

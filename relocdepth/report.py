@@ -39,6 +39,8 @@ def format_table(report: dict) -> str:
                         "aligned errors below mean nothing (the rotation-only alignment still does)")
     if len(pose["per_sequence"]) > 1:
         lines += [_pose_row(f"  {seq}", s) for seq, s in pose["per_sequence"].items()]
+    if "refined" in pose:  # evaluate --refine
+        lines.append(_pose_row("refined, nearest train", pose["refined"]["test"]))
     lines += [
         _pose_row("mean training pose", base["mean_pose"]),
         _pose_row("thumbnail retrieval", base["retrieval"]),
@@ -52,6 +54,13 @@ def format_table(report: dict) -> str:
         + (f"; it is {pose['rotation_only']['fit_gap_deg']:.2f} deg from the centre-fitted Sim(3)'s rotation"
            if "fit_gap_deg" in pose["rotation_only"] else ""),  # older reports lack it
     ]
+    if "refined" in pose:
+        ref = pose["refined"]
+        lines.append(
+            f"refined against the {ref['neighbours']} nearest training frames: rotation-only "
+            f"{ref['rotation_only']['median_r_deg']:.2f} deg; {ref['network_pose_kept']} test frame(s) "
+            "kept the network's pose (no pair worked)"
+        )
     rel = pose["relative"]
     if rel["pairs"]:
         lines.append(

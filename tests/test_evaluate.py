@@ -352,3 +352,34 @@ def test_per_frame_csv_confidence_ranking_and_evo_ape(
     assert stats["r"]["median"] == pytest.approx(seq["median_r_deg"], rel=1e-4, abs=1e-3)
     assert stats["r"]["mean"] == pytest.approx(seq["mean_r_deg"], rel=1e-4, abs=1e-3)
     assert stats["t"]["rmse"] == pytest.approx(float(np.sqrt(np.mean(t_csv**2))), rel=1e-4)
+
+
+def test_evaluate_refine_reports_both_and_the_csv_agrees(run: Path, synth_shards: Path, tmp_path: Path) -> None:
+    """--refine adds pose.refined under the same alignment, a table row and per-frame columns;
+    a frame none of whose pairs worked keeps the network's error."""
+    import csv
+
+    report_path = tmp_path / "r.json"
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(report_path),
+                 "--refine", "--refine-neighbours", "2")
+    assert res.exit_code == 0, res.output
+    report = json.loads(report_path.read_text())
+    validate("report", report)
+    refined = report["pose"]["refined"]
+    assert refined["neighbours"] == 2 and refined["test"]["frames"] == SCENE_FRAMES
+    assert "refined, nearest train" in res.stdout and "against the 2 nearest training frames" in res.stdout
+    with (tmp_path / "r.frames.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0])[-3:] == ["refined_t_err_m", "refined_r_err_deg", "refined_pairs"]
+    pairs = np.array([int(r["refined_pairs"]) for r in rows])
+    t_net = np.array([float(r["t_err_m"]) for r in rows])
+    t_ref = np.array([float(r["refined_t_err_m"]) for r in rows])
+    assert np.all((pairs >= 0) & (pairs <= 2))
+    assert refined["network_pose_kept"] == int(np.sum(pairs == 0))
+    np.testing.assert_allclose(t_ref[pairs == 0], t_net[pairs == 0], rtol=1e-4, atol=1e-6)
+    assert np.median(t_ref) == pytest.approx(refined["test"]["median_t_m"], rel=1e-4)
+    # without --refine the report and the CSV stay as they were
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(tmp_path / "plain.json"))
+    assert res.exit_code == 0, res.output
+    assert "refined" not in json.loads((tmp_path / "plain.json").read_text())["pose"]
+    assert "refined" not in (tmp_path / "plain.frames.csv").read_text().splitlines()[0]
