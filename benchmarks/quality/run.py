@@ -22,7 +22,9 @@ table reports them.
 Rungs (each needs the ones below): 1 = depth AbsRel <= 0.9 x constant depth and the relative
 pose between test frames 5 apart <= 0.9 x identity in translation and rotation; 2 = median
 translation below the mean-pose reference; 3 = median translation and rotation below thumbnail
-retrieval.
+retrieval. The rungs judge the network's own pose (the paper's); the table's ``refined`` column is
+the same checkpoint's pose refined against its nearest training frames (``reloc evaluate
+--refine``), beside it.
 
 A row whose ``rows/<name>/result.json`` already holds the same recipe and budget is reused
 (``--redo`` retrains it), so the table can be rebuilt, or rows added, without retraining.
@@ -183,7 +185,7 @@ def training_summary(run: Path, proc: subprocess.Popen, seconds: float) -> dict:
 
 def evaluate(shards: Path, run: Path, report: Path, threads: int) -> dict:
     t0 = time.perf_counter()
-    run_to_end(["evaluate", str(shards), "--checkpoint", str(run), "-o", str(report)], threads,
+    run_to_end(["evaluate", str(shards), "--checkpoint", str(run), "-o", str(report), "--refine"], threads,
                report.parent / "evaluate.log")
     log.info("evaluated in %.0f s", time.perf_counter() - t0)
     return json.loads(report.read_text())
@@ -193,8 +195,11 @@ def metrics(report: dict) -> dict:
     """The table's columns from a ``reloc evaluate`` report."""
     test, rel = report["pose"]["test"], report["pose"]["relative"]
     depth = (report.get("depth") or {}).get("prediction") or {}
+    refined = report["pose"].get("refined")  # evaluate --refine; older reports lack it
     return {
         "median_t_m": test["median_t_m"], "median_r_deg": test["median_r_deg"],
+        "refined_t_m": refined["test"]["median_t_m"] if refined else None,
+        "refined_r_deg": refined["test"]["median_r_deg"] if refined else None,
         "pct_10cm_10deg": test["pct_10cm_10deg"],
         "rel_k": rel["k"], "rel_t_m": rel["median_t_m"], "rel_r_deg": rel["median_r_deg"],
         "abs_rel": depth.get("abs_rel"), "delta1": depth.get("delta1"),
@@ -245,7 +250,8 @@ def fmt(v: float | None, spec: str) -> str:
 
 def table(rows: dict, ref: dict, size: str) -> str:
     head = ("| row | input | budget | steps | median t (m) | median r (deg) | 10cm/10deg | "
-            "rel. pose, frames 5 apart (m / deg) | AbsRel | d<1.25 | scale std/median | rung |")
+            "rel. pose, frames 5 apart (m / deg) | AbsRel | d<1.25 | scale std/median | "
+            "refined t / r (m / deg) | rung |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, r in rows.items():
         m = r["metrics"]
@@ -253,7 +259,7 @@ def table(rows: dict, ref: dict, size: str) -> str:
             f"| {name} | {size} | {r['budget_min']:g} min | {r['train']['steps']} | {m['median_t_m']:.3f} | "
             f"{m['median_r_deg']:.1f} | {m['pct_10cm_10deg']:.1f} % | {m['rel_t_m']:.4f} / {m['rel_r_deg']:.2f} | "
             f"{fmt(m['abs_rel'], '.3f')} | {fmt(m['delta1'], '.3f')} | {fmt(m['scale_std_over_median'], '.3f')} | "
-            f"{r['rung']} |")
+            f"{fmt(m.get('refined_t_m'), '.3f')} / {fmt(m.get('refined_r_deg'), '.1f')} | {r['rung']} |")
     mp, rt, idr, cd = ref["mean_pose"], ref["retrieval"], ref["identity_relative"], ref["constant_depth"]
     refs = [
         ("*mean pose*", {4: f"{mp['median_t_m']:.3f}", 5: f"{mp['median_r_deg']:.1f}",
@@ -268,7 +274,7 @@ def table(rows: dict, ref: dict, size: str) -> str:
         refs.append(("*nearest training centre (oracle)*", {4: f"{nc['median_t_m']:.3f}",
                      5: f"{nc['median_r_deg']:.1f}", 6: f"{nc['pct_10cm_10deg']:.1f} %"}))
     for name, cells in refs:
-        lines.append("| " + " | ".join([name] + [cells.get(i, "") for i in range(1, 12)]) + " |")
+        lines.append("| " + " | ".join([name] + [cells.get(i, "") for i in range(1, 13)]) + " |")
     return "\n".join(lines)
 
 
