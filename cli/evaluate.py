@@ -29,6 +29,7 @@ def evaluate(
     test_sequences: Annotated[str | None, typer.Option("--test-sequences", metavar="NAMES", help="Comma-separated sequences to test on instead of the test split (the others fit the Sim(3)); e.g. a training sequence, to see whether the networks fit the frames they trained on.")] = None,
     refine: Annotated[bool, typer.Option("--refine", help="Also refine each test pose against the training frames nearest it (two-view geometry with the network's depth; the network's own poses of the training frames as the map) and report both. Not part of the paper's protocol.")] = False,
     refine_neighbours: Annotated[int, typer.Option("--refine-neighbours", min=1, metavar="N", help="With --refine: training frames paired with each test frame.")] = 3,
+    refine_min_pairs: Annotated[int, typer.Option("--refine-min-pairs", min=1, metavar="N", help="With --refine: agreeing pairs needed to replace the network's pose.")] = 2,
 ) -> None:
     """Sim(3)-aligned pose errors, depth metrics and baselines (JSON report, TUM files, plots)."""
     from relocdepth.evaluate import EvalConfig
@@ -38,7 +39,7 @@ def evaluate(
     report = run_evaluate(shards, checkpoint, EvalConfig(
         batch_size=batch_size, device=parse_device(device),
         test_sequences=tuple(n.strip() for n in (test_sequences or "").split(",") if n.strip()),
-        refine=refine, refine_neighbours=refine_neighbours),
+        refine=refine, refine_neighbours=refine_neighbours, refine_min_pairs=refine_min_pairs),
                           report_path=out, plots_dir=plots, save_alignment=save_alignment)
     typer.echo(format_table(report))
     if save_alignment:

@@ -49,6 +49,7 @@ class EvalConfig:
     # report gains pose.refined and the frames CSV the refined errors. Off: the paper's protocol.
     refine: bool = False
     refine_neighbours: int = 3
+    refine_min_pairs: int = 2
 
 
 @dataclass
@@ -256,9 +257,10 @@ def evaluate(
     refined = None
     if cfg.refine:
         raw, used = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est,
-                                      cfg.refine_neighbours)
+                                      cfg.refine_neighbours, cfg.refine_min_pairs)
         pose["refined"], refined_al = refined_report(fit, train_est, train_gt, raw, test_gt, used,
-                                                     te.sequences, cfg.refine_neighbours, cfg.relative_k)
+                                                     te.sequences, cfg.refine_neighbours,
+                                                     cfg.refine_min_pairs, cfg.relative_k)
         refined = (*EG.pose_errors(refined_al, test_gt), used)
     report = {
         "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
@@ -322,7 +324,7 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
 
 
 def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_est: np.ndarray,
-                      test_est: np.ndarray, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+                      test_est: np.ndarray, neighbours: int, min_pairs: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Each test pose refined against its nearest training frames (:mod:`relocdepth.refine`, the
     network's own poses of the training frames as the map); returns (raw refined poses (N, 4, 4)
     in the networks' frame, pairs agreeing per frame (N,))."""
@@ -331,7 +333,7 @@ def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_es
 
     refiner = Refiner.from_images(predictor, lambda i: ds.read_image(train_recs[i]),
                                   [r.intrinsics for r in train_recs], T_wc=train_est,
-                                  cfg=RefineConfig(neighbours=neighbours))
+                                  cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs))
     out, used = np.empty_like(test_est), np.zeros(len(test_recs), int)
     with progress_bar("evaluate", "frames") as progress:
         task = progress.add_task("refine test", total=len(test_recs))
@@ -343,7 +345,7 @@ def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_es
 
 def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, refined: np.ndarray,
                    test_gt: np.ndarray, used: np.ndarray, test_sequences: list[str], neighbours: int,
-                   relative_k: int = 5) -> tuple[dict, np.ndarray]:
+                   min_pairs: int = 2, relative_k: int = 5) -> tuple[dict, np.ndarray]:
     """The refined test poses under the same alignment as the network's (fitted on the
     network's training poses); returns (report section ``pose.refined``, aligned poses)."""
     al = EG.apply_sim3(fit.scale, fit.R, fit.t, refined)
@@ -356,7 +358,8 @@ def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, re
         "rotation_only": {"median_r_deg": float(np.median(rot_only)), "mean_r_deg": float(np.mean(rot_only))},
         "relative": M.relative_pose_errors(al, test_gt, test_sequences, relative_k),
         "neighbours": int(neighbours),
-        "network_pose_kept": int(np.sum(used == 0)),
+        "min_pairs": int(min_pairs),
+        "network_pose_kept": int(np.sum(used < min_pairs)),
     }, al
 
 

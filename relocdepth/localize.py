@@ -54,6 +54,7 @@ class LocalizeConfig:
     # Shards whose training frames refine each pose (relocdepth.refine); None = the network's pose.
     refine: str | None = None
     refine_neighbours: int = 3
+    refine_min_pairs: int = 2
 
 
 @dataclass(frozen=True)
@@ -283,14 +284,14 @@ def localize_frames(
     return records
 
 
-def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int) -> Refiner:
+def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, min_pairs: int = 2) -> Refiner:
     """A :class:`Refiner` whose map is the training frames of ``shards`` (the network's poses of
     them, predicted here with a progress report)."""
     from relocdepth.dataset import open_dataset
     from relocdepth.progress import progress_bar
 
-    if neighbours < 1:
-        raise UserError("--refine-neighbours must be at least 1")
+    if neighbours < 1 or min_pairs < 1:
+        raise UserError("--refine-neighbours and --refine-min-pairs must be at least 1")
     ds = open_dataset(shards)
     recs = [r for r in ds.records if r.split == "train"]
     if not recs:
@@ -300,7 +301,7 @@ def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int) 
     with progress_bar("localize", "frames") as bar:
         task = bar.add_task("map: training frames", total=len(recs))
         return Refiner.from_images(predictor, lambda i: ds.read_image(recs[i]), [r.intrinsics for r in recs],
-                                   cfg=RefineConfig(neighbours=neighbours),
+                                   cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs),
                                    on_batch=lambda n: bar.advance(task, n))
 
 
@@ -337,7 +338,8 @@ def localize(
     predictor = Predictor.from_checkpoint(cfg.checkpoint, device=str(pick_device(cfg.device)))
     if cfg.output and Path(cfg.output).is_dir():
         raise UserError(f"--output {cfg.output} is a folder; give a file name")
-    refiner = training_refiner(predictor, cfg.refine, cfg.refine_neighbours) if cfg.refine else None
+    refiner = training_refiner(predictor, cfg.refine, cfg.refine_neighbours,
+                                cfg.refine_min_pairs) if cfg.refine else None
     depth = DepthWriter(cfg.depth_out) if cfg.depth_out else None
     try:
         stream = None if on_text is None else (lambda recs: on_text(format_records(recs, cfg.format)))

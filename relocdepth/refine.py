@@ -20,7 +20,9 @@ between them. Refinement keeps what it does well and measures the rest:
 One round: picking the neighbours again from the refined pose and pairing again was measured
 worse on trained networks (README, *Quality*).
 
-A query whose pairs all fail keeps the network's pose (``used`` 0). Nothing here needs ground
+A query with fewer than ``min_pairs`` agreeing proposals keeps the network's pose: one pair alone
+is not checked by another, and on real images the lone pairs were the wrong ones (a pair across
+~0.5 m of a walk-through at 192x128 either fails or misleads; README, *Quality*). Nothing here needs ground
 truth: the map is the network's, depth the network's; the protocol's alignment applies to the
 refined pose as to the network's. The paper localizes with the network alone, so this is an
 addition (off by default; README, fidelity table).
@@ -45,6 +47,7 @@ class RefineConfig:
     neighbours: int = 3  # training frames paired with each query
     max_view_deg: float = 30.0  # prefer neighbours looking within this angle of the query
     inlier_deg: float = 5.0  # a proposal this far (rotation) from the proposals' medoid is dropped
+    min_pairs: int = 2  # agreeing proposals needed to replace the network's pose
     cache: int = 512  # training frames whose image and depth are kept in memory
 
 
@@ -92,8 +95,8 @@ class Reference:
 def refine_pose(ref: Reference, image: np.ndarray, K: np.ndarray, T_wc: np.ndarray,
                 cfg: RefineConfig = RefineConfig()) -> tuple[np.ndarray, int]:
     """The query's refined ``T_wc (4, 4)`` (the map's world and units) and how many of its pairs
-    agreed (0: no pair worked, the network's ``T_wc`` is returned). ``image`` and ``K`` at the
-    size of the map's frames."""
+    agreed; under ``cfg.min_pairs`` the network's ``T_wc`` is returned. ``image`` and ``K`` at
+    the size of the map's frames."""
     proposals = []
     for n in ref.neighbours(np.asarray(T_wc, np.float64), cfg.neighbours, cfg.max_view_deg):
         f = ref.frame(int(n))
@@ -103,7 +106,8 @@ def refine_pose(ref: Reference, image: np.ndarray, K: np.ndarray, T_wc: np.ndarr
     if not proposals:
         return np.asarray(T_wc, np.float64), 0
     T, inl = robust_mean_transform(np.stack(proposals), cfg.inlier_deg)
-    return T, int(inl.sum())
+    agreeing = int(inl.sum())
+    return (T if agreeing >= cfg.min_pairs else np.asarray(T_wc, np.float64)), agreeing
 
 
 class Refiner:

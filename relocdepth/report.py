@@ -59,7 +59,7 @@ def format_table(report: dict) -> str:
         lines.append(
             f"refined against the {ref['neighbours']} nearest training frames: rotation-only "
             f"{ref['rotation_only']['median_r_deg']:.2f} deg; {ref['network_pose_kept']} test frame(s) "
-            "kept the network's pose (no pair worked)"
+            f"kept the network's pose (under {ref.get('min_pairs', 2)} pairs agreeing)"
         )
     rel = pose["relative"]
     if rel["pairs"]:

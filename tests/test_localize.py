@@ -208,19 +208,21 @@ def test_depth_png_scale(run: Path, folder: Path, tmp_path: Path) -> None:
 
 
 def test_refine_against_the_training_frames(run: Path, folder: Path, synth_shards: Path) -> None:
-    """--refine SHARDS: each line says how many pairs agreed; a frame with none keeps the network's
-    pose, the others move; a missing dataset is a one-line error."""
+    """--refine SHARDS: each line says how many pairs agreed; a frame with under two keeps the
+    network's pose, the others move; a missing dataset is a one-line error."""
     plain = records(invoke(str(folder), "--checkpoint", str(run)))
-    refined = records(invoke(str(folder), "--checkpoint", str(run), "--refine", str(synth_shards)))
-    assert len(refined) == len(plain) == FRAMES
-    moved = 0
-    for p, r in zip(plain, refined):
-        assert 0 <= r["refined_pairs"] <= 3 and "refined_pairs" not in p
-        R = np.array(r["T_wc"])[:3, :3]
-        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
-        same = np.allclose(r["T_wc"], p["T_wc"], atol=1e-9)
-        assert same == (r["refined_pairs"] == 0), r
-        moved += not same
+    for need in (2, 1):  # a network trained for one step: its poses agree rarely, so also 1
+        refined = records(invoke(str(folder), "--checkpoint", str(run), "--refine", str(synth_shards),
+                                 "--refine-min-pairs", str(need)))
+        assert len(refined) == len(plain) == FRAMES
+        moved = 0
+        for p, r in zip(plain, refined):
+            assert 0 <= r["refined_pairs"] <= 3 and "refined_pairs" not in p
+            R = np.array(r["T_wc"])[:3, :3]
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
+            same = np.allclose(r["T_wc"], p["T_wc"], atol=1e-9)
+            assert same == (r["refined_pairs"] < need), r
+            moved += not same
     assert moved > 0
     assert_user_error(invoke(str(folder), "--checkpoint", str(run), "--refine", str(folder.parent / "nope")),
                       "nope")

@@ -106,3 +106,16 @@ def test_frames_load_once_while_cached(rendered: dict) -> None:
     assert sorted(loads) == sorted(set(loads)) and len(loads) == 3
     with pytest.raises(ValueError, match="training poses"):
         Reference(np.zeros((0, 4, 4)), lambda i: None)
+
+
+def test_one_pair_alone_does_not_move_the_pose(rendered: dict) -> None:
+    ref = _reference(rendered)
+    q = rendered["queries"][1]
+    truth = _scaled(rendered["path"][q], UNITS)
+    rough = truth @ _rigid((1.0, 1.0, 0.0), (0.03 * UNITS, 0.0, 0.0))
+    image = rendered["frames"][q][0]
+    T, agreeing = refine_pose(ref, image, INTR.K(), rough, RefineConfig(neighbours=1))
+    assert agreeing == 1
+    np.testing.assert_array_equal(T, rough)
+    T, agreeing = refine_pose(ref, image, INTR.K(), rough, RefineConfig(neighbours=1, min_pairs=1))
+    assert agreeing == 1 and _errors(T, truth)[0] < 0.02 < _errors(rough, truth)[0]
