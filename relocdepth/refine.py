@@ -11,7 +11,9 @@ between them. Refinement keeps what it does well and measures the rest:
    (among those looking within ``max_view_deg`` of it, when there are any);
 3. each pair (training frame -> query) gets its relative pose from two-view geometry, as the
    bootstrap measures it (:func:`relocdepth.vo.pair_pose`: KLT tracks, the essential matrix,
-   the translation's length from the network's depth of the training frame, so in its units; a
+   the translation's length from the network's depth of the training frame, so in its units;
+   both images resized to the training frame's stored size up to ``track_width`` px wide, as the
+   bootstrap's ``--bootstrap-track-width``: more pixels, more precise pairs on real images; a
    pair with too little parallax to measure a translation puts the query at the training
    frame's centre, which is then closer than the parallax floor, ~1 px of baseline);
 4. every pair proposes ``T_wc[n] T_{q<-n}^-1``, and :func:`relocdepth.vo.robust_mean_transform`
@@ -34,6 +36,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from relocdepth.camera import Intrinsics
@@ -48,12 +51,14 @@ class RefineConfig:
     max_view_deg: float = 30.0  # prefer neighbours looking within this angle of the query
     inlier_deg: float = 5.0  # a proposal this far (rotation) from the proposals' medoid is dropped
     min_pairs: int = 2  # agreeing proposals needed to replace the network's pose
+    track_width: int = 640  # pairs tracked at the stored size, at most this wide (0: network size)
     cache: int = 512  # training frames whose image and depth are kept in memory
 
 
 @dataclass
 class RefFrame:
-    """One training frame as a pair needs it: RGB at the network size, K at that size, depth."""
+    """One training frame as a pair needs it: RGB at its tracking size, K and the network's depth
+    (any units) at that size."""
 
     image: np.ndarray
     K: np.ndarray
@@ -92,15 +97,17 @@ class Reference:
         return order[:k]
 
 
-def refine_pose(ref: Reference, image: np.ndarray, K: np.ndarray, T_wc: np.ndarray,
+def refine_pose(ref: Reference, image: np.ndarray, intrinsics: Intrinsics, T_wc: np.ndarray,
                 cfg: RefineConfig = RefineConfig()) -> tuple[np.ndarray, int]:
     """The query's refined ``T_wc (4, 4)`` (the map's world and units) and how many of its pairs
-    agreed; under ``cfg.min_pairs`` the network's ``T_wc`` is returned. ``image`` and ``K`` at
-    the size of the map's frames."""
+    agreed; under ``cfg.min_pairs`` the network's ``T_wc`` is returned. ``image``: RGB uint8 at
+    any size, ``intrinsics`` its camera; it is resized to each training frame's size."""
     proposals = []
     for n in ref.neighbours(np.asarray(T_wc, np.float64), cfg.neighbours, cfg.max_view_deg):
         f = ref.frame(int(n))
-        p = pair_pose(f.image, image, f.K, K, f.depth, VOConfig())
+        h, w = f.image.shape[:2]
+        p = pair_pose(f.image, resize_to(image, (w, h)), f.K, intrinsics.scaled(w, h).K(), f.depth,
+                      VOConfig())
         if p.ok:  # unmeasured translation: under the parallax floor, the query is about there
             proposals.append(ref.T_wc[n] @ np.linalg.inv(p.T))
     if not proposals:
@@ -133,17 +140,26 @@ class Refiner:
                 if on_batch is not None:
                     on_batch(len(idx))
             T_wc = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
-        w, h = predictor.input_size
-
         def load(i: int) -> RefFrame:
             img = read(i)
-            pred = predictor.predict([img], [intrinsics[i]], with_depth=True)
-            return RefFrame(resize_to(img, (w, h)), intrinsics[i].scaled(w, h).K(), pred.depth[0])
+            depth = predictor.predict([img], [intrinsics[i]], with_depth=True).depth[0]
+            w, h = track_size(img.shape[1], img.shape[0], predictor.input_size, cfg.track_width)
+            return RefFrame(resize_to(img, (w, h)), intrinsics[i].scaled(w, h).K(),
+                            cv2.resize(depth, (w, h), interpolation=cv2.INTER_LINEAR))
 
         return cls(predictor, Reference(T_wc, load, cfg.cache), cfg)
 
     def refine(self, image: np.ndarray, intrinsics: Intrinsics, T_wc: np.ndarray) -> tuple[np.ndarray, int]:
         """:func:`refine_pose` of one query image (RGB uint8 at any size, its intrinsics) whose
         network pose is ``T_wc``."""
-        w, h = self.predictor.input_size
-        return refine_pose(self.ref, resize_to(image, (w, h)), intrinsics.scaled(w, h).K(), T_wc, self.cfg)
+        return refine_pose(self.ref, image, intrinsics, T_wc, self.cfg)
+
+
+def track_size(width: int, height: int, input_size: tuple[int, int], track_width: int) -> tuple[int, int]:
+    """Where a stored ``width x height`` training frame is tracked: its own size up to
+    ``track_width`` px wide (aspect kept), never below the network's ``input_size (W, H)``;
+    ``track_width`` 0: the network's size."""
+    if track_width <= 0 or width <= input_size[0]:
+        return input_size
+    w = min(width, track_width)
+    return w, max(1, round(height * w / width))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from relocdepth.eval_geometry import rotation_angle_deg
-from relocdepth.refine import Reference, RefFrame, RefineConfig, refine_pose
+from relocdepth.refine import Reference, RefFrame, RefineConfig, refine_pose, track_size
 from relocdepth.synth import SEVEN_SCENES_INTRINSICS, SynthConfig, build_scene, camera_paths, render
 
 INTR = SEVEN_SCENES_INTRINSICS.scaled(128, 96)  # the demo scene's camera
@@ -67,7 +67,7 @@ def test_rough_pose_comes_back_to_the_true_one(rendered: dict) -> None:
         truth = _scaled(rendered["path"][q], UNITS)
         rough = truth @ _rigid((2.0, -3.0, 1.5), (0.03 * UNITS, -0.02 * UNITS, 0.02 * UNITS))
         assert _errors(rough, truth)[0] > 0.04
-        T, agreeing = refine_pose(ref, rendered["frames"][q][0], INTR.K(), rough)
+        T, agreeing = refine_pose(ref, rendered["frames"][q][0], INTR, rough)
         t_err, r_err = _errors(T, truth)
         assert agreeing >= 2, q
         assert t_err < 0.025 and r_err < 1.0, (q, t_err, r_err)
@@ -91,7 +91,7 @@ def test_no_working_pair_keeps_the_network_pose(rendered: dict) -> None:
     ref = _reference(rendered)
     blank = np.full((INTR.height, INTR.width, 3), 128, np.uint8)  # nothing to track
     rough = _scaled(rendered["path"][21], UNITS)
-    T, agreeing = refine_pose(ref, blank, INTR.K(), rough)
+    T, agreeing = refine_pose(ref, blank, INTR, rough)
     assert agreeing == 0
     np.testing.assert_array_equal(T, rough)
 
@@ -102,7 +102,7 @@ def test_frames_load_once_while_cached(rendered: dict) -> None:
     q = rendered["queries"][1]
     pose = _scaled(rendered["path"][q], UNITS)
     for _ in range(2):
-        refine_pose(ref, rendered["frames"][q][0], INTR.K(), pose, RefineConfig(neighbours=3))
+        refine_pose(ref, rendered["frames"][q][0], INTR, pose, RefineConfig(neighbours=3))
     assert sorted(loads) == sorted(set(loads)) and len(loads) == 3
     with pytest.raises(ValueError, match="training poses"):
         Reference(np.zeros((0, 4, 4)), lambda i: None)
@@ -114,8 +114,28 @@ def test_one_pair_alone_does_not_move_the_pose(rendered: dict) -> None:
     truth = _scaled(rendered["path"][q], UNITS)
     rough = truth @ _rigid((1.0, 1.0, 0.0), (0.03 * UNITS, 0.0, 0.0))
     image = rendered["frames"][q][0]
-    T, agreeing = refine_pose(ref, image, INTR.K(), rough, RefineConfig(neighbours=1))
+    T, agreeing = refine_pose(ref, image, INTR, rough, RefineConfig(neighbours=1))
     assert agreeing == 1
     np.testing.assert_array_equal(T, rough)
-    T, agreeing = refine_pose(ref, image, INTR.K(), rough, RefineConfig(neighbours=1, min_pairs=1))
+    T, agreeing = refine_pose(ref, image, INTR, rough, RefineConfig(neighbours=1, min_pairs=1))
     assert agreeing == 1 and _errors(T, truth)[0] < 0.02 < _errors(rough, truth)[0]
+
+
+def test_query_of_another_size_is_resized_to_the_map(rendered: dict) -> None:
+    """A query rendered at 256x192 (its own intrinsics) is placed as its 128x96 copy is."""
+    cfg = SynthConfig(seed=0, frames=60, width=INTR.width, height=INTR.height)
+    scene = build_scene(cfg.seed, cfg)
+    big = SEVEN_SCENES_INTRINSICS.scaled(256, 192)
+    q = rendered["queries"][2]
+    truth = _scaled(rendered["path"][q], UNITS)
+    rough = truth @ _rigid((2.0, 0.0, -1.0), (0.0, 0.02 * UNITS, 0.02 * UNITS))
+    T, agreeing = refine_pose(_reference(rendered), render(scene, rendered["path"][q], big)[0], big, rough)
+    assert agreeing >= 2 and _errors(T, truth)[0] < 0.025
+
+
+def test_track_size() -> None:
+    assert track_size(640, 480, (128, 96), 640) == (640, 480)  # stored 640x480: tracked there
+    assert track_size(1280, 960, (128, 96), 640) == (640, 480)  # wider: down to 640
+    assert track_size(540, 360, (192, 128), 640) == (540, 360)
+    assert track_size(128, 96, (128, 96), 640) == (128, 96)  # stored at the network size
+    assert track_size(640, 480, (128, 96), 0) == (128, 96)  # 0: the network's size
