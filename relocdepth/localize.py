@@ -28,7 +28,7 @@ from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
-from relocdepth.refine import RefineConfig, Refiner
+from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, predict_poses
 from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
@@ -286,7 +286,8 @@ def localize_frames(
 
 def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, min_pairs: int = 2) -> Refiner:
     """A :class:`Refiner` whose map is the training frames of ``shards`` (the network's poses of
-    them, predicted here with a progress report)."""
+    them, from the run's stored map when this checkpoint built it from these frames, else
+    predicted here with a progress report)."""
     from relocdepth.dataset import open_dataset
     from relocdepth.progress import progress_bar
 
@@ -298,11 +299,16 @@ def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, 
         raise UserError(f"--refine {shards}: the shards have no training frames to refine against")
     if predictor.meta.get("manifest_hash") != ds.manifest_hash:
         log.warning("--refine: the checkpoint was trained on other shards than %s", ds.root)
-    with progress_bar("localize", "frames") as bar:
-        task = bar.add_task("map: training frames", total=len(recs))
-        return Refiner.from_images(predictor, lambda i: ds.read_image(recs[i]), [r.intrinsics for r in recs],
-                                   cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs),
-                                   on_batch=lambda n: bar.advance(task, n))
+    read, intrinsics = (lambda i: ds.read_image(recs[i])), [r.intrinsics for r in recs]
+
+    def compute() -> np.ndarray:
+        with progress_bar("localize", "frames") as bar:
+            task = bar.add_task("map: training frames", total=len(recs))
+            return predict_poses(predictor, read, intrinsics, on_batch=lambda n: bar.advance(task, n))
+
+    T_wc = cached_map_poses(Path(predictor.meta["path"]), ds.manifest_hash, [r.key for r in recs], compute)
+    return Refiner.from_images(predictor, read, intrinsics, T_wc=T_wc,
+                               cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs))
 
 
 def format_records(records: list[dict], fmt: str) -> str:

@@ -32,17 +32,27 @@ addition (off by default; README, fidelity table).
 
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
+import zipfile
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from relocdepth.camera import Intrinsics
 from relocdepth.eval_geometry import rotation_angle_deg
+from relocdepth.fileio import atomic_write
 from relocdepth.predictor import Predictor, resize_to
 from relocdepth.vo import VOConfig, pair_pose, robust_mean_transform
+
+log = logging.getLogger(__name__)
+
+MAP_NAME = "refine-map.npz"  # beside a run's checkpoints: the training poses of the last --refine
 
 
 @dataclass(frozen=True)
@@ -132,14 +142,7 @@ class Refiner:
         the predictor's poses of them when already at hand (else predicted here, in batches,
         ``on_batch(n)`` after each)."""
         if T_wc is None:
-            poses = []
-            for s in range(0, len(intrinsics), batch_size):
-                idx = range(s, min(s + batch_size, len(intrinsics)))
-                poses.append(predictor.predict([read(i) for i in idx], [intrinsics[i] for i in idx],
-                                               with_depth=False).T_wc)
-                if on_batch is not None:
-                    on_batch(len(idx))
-            T_wc = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
+            T_wc = predict_poses(predictor, read, intrinsics, batch_size, on_batch)
         def load(i: int) -> RefFrame:
             img = read(i)
             depth = predictor.predict([img], [intrinsics[i]], with_depth=True).depth[0]
@@ -153,6 +156,45 @@ class Refiner:
         """:func:`refine_pose` of one query image (RGB uint8 at any size, its intrinsics) whose
         network pose is ``T_wc``."""
         return refine_pose(self.ref, image, intrinsics, T_wc, self.cfg)
+
+
+def predict_poses(predictor: Predictor, read: Callable[[int], np.ndarray], intrinsics: list[Intrinsics],
+                  batch_size: int = 16, on_batch: Callable[[int], None] | None = None) -> np.ndarray:
+    """The predictor's ``T_wc (N, 4, 4)`` of N images (``read(i)``), in batches; ``on_batch(n)``
+    after each."""
+    poses = []
+    for s in range(0, len(intrinsics), batch_size):
+        idx = range(s, min(s + batch_size, len(intrinsics)))
+        poses.append(predictor.predict([read(i) for i in idx], [intrinsics[i] for i in idx],
+                                       with_depth=False).T_wc)
+        if on_batch is not None:
+            on_batch(len(idx))
+    return np.concatenate(poses) if poses else np.zeros((0, 4, 4))
+
+
+def cached_map_poses(ckpt_path: Path, manifest_hash: str, keys: list[str],
+                     compute: Callable[[], np.ndarray]) -> np.ndarray:
+    """The map's poses from ``checkpoints/refine-map.npz`` when it was built by this checkpoint
+    file (name, size, modification time) from these frames (the shards' manifest hash and the
+    frames' keys); else ``compute()``, stored there for the next time (a run folder that cannot
+    be written to only costs the next call the same pass)."""
+    path = ckpt_path.parent / MAP_NAME
+    st = ckpt_path.stat()
+    ident = hashlib.sha256(json.dumps(
+        [ckpt_path.name, st.st_size, st.st_mtime_ns, manifest_hash, keys]).encode()).hexdigest()
+    try:
+        with np.load(path) as z:
+            if str(z["ident"]) == ident and z["T_wc"].shape == (len(keys), 4, 4):
+                log.info("the map's %d training poses from %s", len(keys), path)
+                return np.asarray(z["T_wc"], np.float64)
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        pass  # none yet, or unreadable: build it
+    T_wc = compute()
+    try:
+        atomic_write(path, lambda f: np.savez(f, ident=np.array(ident), T_wc=T_wc))
+    except OSError as e:
+        log.warning("could not store the map in %s (%s); the next --refine builds it again", path, e)
+    return T_wc
 
 
 def track_size(width: int, height: int, input_size: tuple[int, int], track_width: int) -> tuple[int, int]:

@@ -207,9 +207,11 @@ def test_depth_png_scale(run: Path, folder: Path, tmp_path: Path) -> None:
         assert rec["units"] == ("m" if which == aligned_run else "network")
 
 
-def test_refine_against_the_training_frames(run: Path, folder: Path, synth_shards: Path) -> None:
+def test_refine_against_the_training_frames(run: Path, folder: Path, synth_shards: Path,
+                                            tmp_path: Path) -> None:
     """--refine SHARDS: each line says how many pairs agreed; a frame with under two keeps the
     network's pose, the others move; a missing dataset is a one-line error."""
+    run = copy_run(run, tmp_path / "run")  # --refine stores its map with the run
     plain = records(invoke(str(folder), "--checkpoint", str(run)))
     for need in (2, 1):  # a network trained for one step: its poses agree rarely, so also 1
         refined = records(invoke(str(folder), "--checkpoint", str(run), "--refine", str(synth_shards),
@@ -226,3 +228,33 @@ def test_refine_against_the_training_frames(run: Path, folder: Path, synth_shard
     assert moved > 0
     assert_user_error(invoke(str(folder), "--checkpoint", str(run), "--refine", str(folder.parent / "nope")),
                       "nope")
+
+
+def test_refine_map_is_stored_with_the_run(run: Path, folder: Path, synth_shards: Path, tmp_path: Path,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The map's training poses are predicted once per checkpoint and shards; a checkpoint file
+    that changed, or an unreadable map file, makes it predicted again."""
+    import os
+
+    import relocdepth.localize as L
+
+    run = copy_run(run, tmp_path / "run")
+    (run / "checkpoints" / "refine-map.npz").unlink(missing_ok=True)
+    calls = []
+    real = L.predict_poses
+    monkeypatch.setattr(L, "predict_poses", lambda *a, **k: calls.append(1) or real(*a, **k))
+    args = (str(folder), "--checkpoint", str(run), "--refine", str(synth_shards), "--refine-min-pairs", "1")
+    first = records(invoke(*args))
+    stored = run / "checkpoints" / "refine-map.npz"
+    assert stored.is_file() and len(calls) == 1
+    again = records(invoke(*args))
+    assert len(calls) == 1  # from the stored map
+    assert [r["T_wc"] for r in again] == [r["T_wc"] for r in first]
+    ckpt = sorted((run / "checkpoints").glob("ckpt-*.pt"))[-1]
+    st = ckpt.stat()
+    os.utime(ckpt, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # the checkpoint changed
+    records(invoke(*args))
+    assert len(calls) == 2
+    stored.write_bytes(b"not a map")
+    assert [r["T_wc"] for r in records(invoke(*args))] == [r["T_wc"] for r in first]
+    assert len(calls) == 3
