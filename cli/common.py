@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import re
 from collections.abc import Callable
+from enum import Enum
 from typing import TypeVar
 
 import typer
@@ -17,6 +18,19 @@ F = TypeVar("F", bound=Callable)
 DEVICE_METAVAR = "auto|cpu|cuda|cuda:N"
 DEVICE_DEFAULT = "auto"
 DEVICE_HELP = "auto (a CUDA GPU when there is one, else the CPU), cpu, cuda or cuda:N (GPU N)."
+
+
+class RefineMatcher(str, Enum):
+    """How ``--refine`` matches a pair (``relocdepth.refine.MATCHERS``)."""
+
+    klt = "klt"
+    sift = "sift"
+    klt_sift = "klt+sift"
+
+
+REFINE_MATCHER_HELP = ("With --refine: how a pair is matched: klt (the bootstrap's tracks: precise, short "
+                       "baselines), sift (descriptors: wider baselines, less precise), klt+sift (SIFT where "
+                       "KLT fails).")
 
 
 def user_errors(fn: F) -> F:

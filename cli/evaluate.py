@@ -10,6 +10,8 @@ from relocdepth.cli.common import (
     DEVICE_DEFAULT,
     DEVICE_HELP,
     DEVICE_METAVAR,
+    REFINE_MATCHER_HELP,
+    RefineMatcher,
     parse_device,
     user_errors,
 )
@@ -30,6 +32,7 @@ def evaluate(
     refine: Annotated[bool, typer.Option("--refine", help="Also refine each test pose against the training frames nearest it (two-view geometry with the network's depth; the network's own poses of the training frames as the map) and report both. Not part of the paper's protocol.")] = False,
     refine_neighbours: Annotated[int, typer.Option("--refine-neighbours", min=1, metavar="N", help="With --refine: training frames paired with each test frame.")] = 3,
     refine_min_pairs: Annotated[int, typer.Option("--refine-min-pairs", min=1, metavar="N", help="With --refine: agreeing pairs needed to replace the network's pose.")] = 2,
+    refine_matcher: Annotated[RefineMatcher, typer.Option("--refine-matcher", help=REFINE_MATCHER_HELP)] = RefineMatcher.klt_sift,
 ) -> None:
     """Sim(3)-aligned pose errors, depth metrics and baselines (JSON report, TUM files, plots)."""
     from relocdepth.evaluate import EvalConfig
@@ -39,7 +42,8 @@ def evaluate(
     report = run_evaluate(shards, checkpoint, EvalConfig(
         batch_size=batch_size, device=parse_device(device),
         test_sequences=tuple(n.strip() for n in (test_sequences or "").split(",") if n.strip()),
-        refine=refine, refine_neighbours=refine_neighbours, refine_min_pairs=refine_min_pairs),
+        refine=refine, refine_neighbours=refine_neighbours, refine_min_pairs=refine_min_pairs,
+        refine_matcher=refine_matcher.value),
                           report_path=out, plots_dir=plots, save_alignment=save_alignment)
     typer.echo(format_table(report))
     if save_alignment:

@@ -11,6 +11,8 @@ from relocdepth.cli.common import (
     DEVICE_DEFAULT,
     DEVICE_HELP,
     DEVICE_METAVAR,
+    REFINE_MATCHER_HELP,
+    RefineMatcher,
     parse_device,
     user_errors,
 )
@@ -47,6 +49,7 @@ def localize(
     refine: Annotated[Path | None, typer.Option("--refine", metavar="SHARDS", help="Refine each pose against the training frames of these shards (the run's own) nearest it: two-view geometry with the network's depth, the network's poses of those frames as the map. Not part of the paper's method; each line gains refined_pairs.")] = None,
     refine_neighbours: Annotated[int, typer.Option("--refine-neighbours", min=1, metavar="N", help="With --refine: training frames paired with each image.")] = 3,
     refine_min_pairs: Annotated[int, typer.Option("--refine-min-pairs", min=1, metavar="N", help="With --refine: agreeing pairs needed to replace the network's pose.")] = 2,
+    refine_matcher: Annotated[RefineMatcher, typer.Option("--refine-matcher", help=REFINE_MATCHER_HELP)] = RefineMatcher.klt_sift,
 ) -> None:
     """World-from-camera pose, confidence and depth of each image from a trained run."""
     from relocdepth.localize import LocalizeConfig
@@ -57,6 +60,7 @@ def localize(
         format=fmt.value, output=str(output) if output else None, batch_size=batch_size,
         device=parse_device(device), refine=str(refine) if refine else None,
         refine_neighbours=refine_neighbours, refine_min_pairs=refine_min_pairs,
+        refine_matcher=refine_matcher.value,
     )
     # Printing to stdout: each batch's lines go out as soon as the batch is done.
     echo = (lambda text: typer.echo(text, nl=False)) if output is None else None

@@ -50,6 +50,7 @@ class EvalConfig:
     refine: bool = False
     refine_neighbours: int = 3
     refine_min_pairs: int = 2
+    refine_matcher: str = "klt+sift"
 
 
 @dataclass
@@ -230,6 +231,12 @@ def evaluate(
     from relocdepth.predictor import Predictor
     from relocdepth.schemas import validate
 
+    from relocdepth.refine import MATCHERS
+
+    if cfg.refine and (cfg.refine_matcher not in MATCHERS or min(cfg.refine_neighbours,
+                                                                  cfg.refine_min_pairs) < 1):
+        raise UserError(f"--refine needs --refine-matcher one of {', '.join(MATCHERS)} (got "
+                        f"{cfg.refine_matcher!r}) and --refine-neighbours, --refine-min-pairs >= 1")
     ds = open_dataset(shards)
     train_recs, test_recs = _checked_records(ds, cfg.test_sequences)
     predictor = Predictor.from_checkpoint(checkpoint, device=str(pick_device(cfg.device)))
@@ -257,10 +264,10 @@ def evaluate(
     refined = None
     if cfg.refine:
         raw, used = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est,
-                                      cfg.refine_neighbours, cfg.refine_min_pairs)
+                                      cfg.refine_neighbours, cfg.refine_min_pairs, cfg.refine_matcher)
         pose["refined"], refined_al = refined_report(fit, train_est, train_gt, raw, test_gt, used,
                                                      te.sequences, cfg.refine_neighbours,
-                                                     cfg.refine_min_pairs, cfg.relative_k)
+                                                     cfg.refine_min_pairs, cfg.refine_matcher, cfg.relative_k)
         refined = (*EG.pose_errors(refined_al, test_gt), used)
     report = {
         "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
@@ -324,7 +331,8 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
 
 
 def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_est: np.ndarray,
-                      test_est: np.ndarray, neighbours: int, min_pairs: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                      test_est: np.ndarray, neighbours: int, min_pairs: int = 2,
+                      matcher: str = "klt+sift") -> tuple[np.ndarray, np.ndarray]:
     """Each test pose refined against its nearest training frames (:mod:`relocdepth.refine`, the
     network's own poses of the training frames as the map); returns (raw refined poses (N, 4, 4)
     in the networks' frame, pairs agreeing per frame (N,))."""
@@ -333,7 +341,7 @@ def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_es
 
     refiner = Refiner.from_images(predictor, lambda i: ds.read_image(train_recs[i]),
                                   [r.intrinsics for r in train_recs], T_wc=train_est,
-                                  cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs))
+                                  cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs, matcher=matcher))
     out, used = np.empty_like(test_est), np.zeros(len(test_recs), int)
     with progress_bar("evaluate", "frames") as progress:
         task = progress.add_task("refine test", total=len(test_recs))
@@ -345,7 +353,7 @@ def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_es
 
 def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, refined: np.ndarray,
                    test_gt: np.ndarray, used: np.ndarray, test_sequences: list[str], neighbours: int,
-                   min_pairs: int = 2, relative_k: int = 5) -> tuple[dict, np.ndarray]:
+                   min_pairs: int = 2, matcher: str = "klt+sift", relative_k: int = 5) -> tuple[dict, np.ndarray]:
     """The refined test poses under the same alignment as the network's (fitted on the
     network's training poses); returns (report section ``pose.refined``, aligned poses)."""
     al = EG.apply_sim3(fit.scale, fit.R, fit.t, refined)
@@ -359,6 +367,7 @@ def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, re
         "relative": M.relative_pose_errors(al, test_gt, test_sequences, relative_k),
         "neighbours": int(neighbours),
         "min_pairs": int(min_pairs),
+        "matcher": matcher,
         "network_pose_kept": int(np.sum(used < min_pairs)),
     }, al
 

@@ -28,7 +28,7 @@ from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
-from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, predict_poses
+from relocdepth.refine import MATCHERS, RefineConfig, Refiner, cached_map_poses, predict_poses
 from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
@@ -55,6 +55,7 @@ class LocalizeConfig:
     refine: str | None = None
     refine_neighbours: int = 3
     refine_min_pairs: int = 2
+    refine_matcher: str = "klt+sift"
 
 
 @dataclass(frozen=True)
@@ -284,7 +285,8 @@ def localize_frames(
     return records
 
 
-def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, min_pairs: int = 2) -> Refiner:
+def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, min_pairs: int = 2,
+                     matcher: str = "klt+sift") -> Refiner:
     """A :class:`Refiner` whose map is the training frames of ``shards`` (the network's poses of
     them, from the run's stored map when this checkpoint built it from these frames, else
     predicted here with a progress report)."""
@@ -293,6 +295,8 @@ def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, 
 
     if neighbours < 1 or min_pairs < 1:
         raise UserError("--refine-neighbours and --refine-min-pairs must be at least 1")
+    if matcher not in MATCHERS:
+        raise UserError(f"unknown --refine-matcher {matcher!r}; use one of {', '.join(MATCHERS)}")
     ds = open_dataset(shards)
     recs = [r for r in ds.records if r.split == "train"]
     if not recs:
@@ -308,7 +312,7 @@ def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, 
 
     T_wc = cached_map_poses(Path(predictor.meta["path"]), ds.manifest_hash, [r.key for r in recs], compute)
     return Refiner.from_images(predictor, read, intrinsics, T_wc=T_wc,
-                               cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs))
+                               cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs, matcher=matcher))
 
 
 def format_records(records: list[dict], fmt: str) -> str:
@@ -345,7 +349,7 @@ def localize(
     if cfg.output and Path(cfg.output).is_dir():
         raise UserError(f"--output {cfg.output} is a folder; give a file name")
     refiner = training_refiner(predictor, cfg.refine, cfg.refine_neighbours,
-                                cfg.refine_min_pairs) if cfg.refine else None
+                                cfg.refine_min_pairs, cfg.refine_matcher) if cfg.refine else None
     depth = DepthWriter(cfg.depth_out) if cfg.depth_out else None
     try:
         stream = None if on_text is None else (lambda recs: on_text(format_records(recs, cfg.format)))

@@ -48,10 +48,11 @@ from relocdepth.camera import Intrinsics
 from relocdepth.eval_geometry import rotation_angle_deg
 from relocdepth.fileio import atomic_write
 from relocdepth.predictor import Predictor, resize_to
-from relocdepth.vo import VOConfig, pair_pose, robust_mean_transform
+from relocdepth.vo import VOConfig, pair_pose, robust_mean_transform, wide_pair_pose
 
 log = logging.getLogger(__name__)
 
+MATCHERS = ("klt", "sift", "klt+sift")
 MAP_NAME = "refine-map.npz"  # beside a run's checkpoints: the training poses of the last --refine
 
 
@@ -62,6 +63,9 @@ class RefineConfig:
     inlier_deg: float = 5.0  # a proposal this far (rotation) from the proposals' medoid is dropped
     min_pairs: int = 2  # agreeing proposals needed to replace the network's pose
     track_width: int = 640  # pairs tracked at the stored size, at most this wide (0: network size)
+    # "klt" (the bootstrap's tracks: precise, short baselines), "sift" (descriptors: wider
+    # baselines, less precise) or "klt+sift" (SIFT where KLT fails)
+    matcher: str = "klt+sift"
     cache: int = 512  # training frames whose image and depth are kept in memory
 
 
@@ -112,12 +116,16 @@ def refine_pose(ref: Reference, image: np.ndarray, intrinsics: Intrinsics, T_wc:
     """The query's refined ``T_wc (4, 4)`` (the map's world and units) and how many of its pairs
     agreed; under ``cfg.min_pairs`` the network's ``T_wc`` is returned. ``image``: RGB uint8 at
     any size, ``intrinsics`` its camera; it is resized to each training frame's size."""
+    if cfg.matcher not in MATCHERS:
+        raise ValueError(f"matcher must be one of {MATCHERS}, not {cfg.matcher!r}")
     proposals = []
     for n in ref.neighbours(np.asarray(T_wc, np.float64), cfg.neighbours, cfg.max_view_deg):
         f = ref.frame(int(n))
         h, w = f.image.shape[:2]
-        p = pair_pose(f.image, resize_to(image, (w, h)), f.K, intrinsics.scaled(w, h).K(), f.depth,
-                      VOConfig())
+        args = (f.image, resize_to(image, (w, h)), f.K, intrinsics.scaled(w, h).K(), f.depth, VOConfig())
+        p = pair_pose(*args) if cfg.matcher != "sift" else None
+        if cfg.matcher != "klt" and (p is None or not p.ok):
+            p = wide_pair_pose(*args)
         if p.ok:  # unmeasured translation: under the parallax floor, the query is about there
             proposals.append(ref.T_wc[n] @ np.linalg.inv(p.T))
     if not proposals:

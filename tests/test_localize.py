@@ -228,6 +228,8 @@ def test_refine_against_the_training_frames(run: Path, folder: Path, synth_shard
     assert moved > 0
     assert_user_error(invoke(str(folder), "--checkpoint", str(run), "--refine", str(folder.parent / "nope")),
                       "nope")
+    bad = invoke(str(folder), "--checkpoint", str(run), "--refine", str(synth_shards), "--refine-matcher", "orb")
+    assert bad.exit_code == 2 and "orb" in bad.output and not bad.stdout.startswith("{")
 
 
 def test_refine_map_is_stored_with_the_run(run: Path, folder: Path, synth_shards: Path, tmp_path: Path,

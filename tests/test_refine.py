@@ -139,3 +139,42 @@ def test_track_size() -> None:
     assert track_size(540, 360, (192, 128), 640) == (540, 360)
     assert track_size(128, 96, (128, 96), 640) == (128, 96)  # stored at the network size
     assert track_size(640, 480, (128, 96), 0) == (128, 96)  # 0: the network's size
+
+
+def test_matchers_klt_sift_and_the_fallback(rendered: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """"klt" pairs by tracks only, "sift" by descriptors only, "klt+sift" by descriptors exactly
+    where the tracks failed."""
+    import relocdepth.refine as R
+    from relocdepth.vo import PairPose
+
+    calls: list[tuple[str, int]] = []
+    refs = [rendered["frames"][i][0] for i in rendered["map"]]
+
+    def which(image: np.ndarray) -> int:
+        return next(j for j, im in enumerate(refs) if im is image)
+
+    def klt(a, *rest):  # works for even map frames only
+        calls.append(("klt", which(a)))
+        return PairPose(np.eye(4), True, which(a) % 2 == 0)
+
+    def sift(a, *rest):
+        calls.append(("sift", which(a)))
+        return PairPose(np.eye(4), True, True)
+
+    monkeypatch.setattr(R, "pair_pose", klt)
+    monkeypatch.setattr(R, "wide_pair_pose", sift)
+    ref = _reference(rendered)
+    q = rendered["queries"][1]
+    pose = _scaled(rendered["path"][q], UNITS)
+    picked = [int(n) for n in ref.neighbours(pose, 3, 30.0)]
+    for matcher, expect in (
+        ("klt", [("klt", n) for n in picked]),
+        ("sift", [("sift", n) for n in picked]),
+        ("klt+sift", [c for n in picked for c in ([("klt", n)] + ([("sift", n)] if n % 2 else []))]),
+    ):
+        calls.clear()
+        refine_pose(ref, rendered["frames"][q][0], INTR, pose, RefineConfig(matcher=matcher))
+        assert calls == expect, matcher
+    assert any(n % 2 for n in picked) and any(n % 2 == 0 for n in picked)  # both kinds were asked
+    with pytest.raises(ValueError, match="matcher"):
+        refine_pose(ref, rendered["frames"][q][0], INTR, pose, RefineConfig(matcher="orb"))
