@@ -12,6 +12,8 @@ between them. Refinement keeps what it does well and measures the rest:
 3. each pair (training frame -> query) gets its relative pose from two-view geometry, as the
    bootstrap measures it (:func:`relocdepth.vo.pair_pose`: KLT tracks, the essential matrix,
    the translation's length from the network's depth of the training frame, so in its units;
+   ``matcher`` "klt+sift" falls back to SIFT matches, :func:`relocdepth.vo.wide_pair_pose`,
+   where the tracks fail: wider baselines, less precise;
    both images resized to the training frame's stored size up to ``track_width`` px wide, as the
    bootstrap's ``--bootstrap-track-width``: more pixels, more precise pairs on real images; a
    pair with too little parallax to measure a translation puts the query at the training
@@ -24,8 +26,8 @@ worse on trained networks (README, *Quality*).
 
 A query with fewer than ``min_pairs`` agreeing proposals keeps the network's pose: one pair alone
 is not checked by another, and on real images the lone pairs were the wrong ones (a pair across
-~0.5 m of a walk-through at 192x128 either fails or misleads; README, *Quality*). Nothing here needs ground
-truth: the map is the network's, depth the network's; the protocol's alignment applies to the
+~0.5 m of a walk-through at 192x128 either fails or misleads; README, *Quality*). Nothing here
+needs ground truth: the map is the network's, depth the network's; the protocol's alignment applies to the
 refined pose as to the network's. The paper localizes with the network alone, so this is an
 addition (off by default; README, fidelity table).
 """
