@@ -61,6 +61,9 @@ def format_table(report: dict) -> str:
             f"{ref['rotation_only']['median_r_deg']:.2f} deg; {ref['network_pose_kept']} test frame(s) "
             f"kept the network's pose (under {ref.get('min_pairs', 2)} pairs agreeing)"
         )
+        if ref["relative"].get("pairs"):
+            lines.append(f"  refined relative pose, frames {ref['relative']['k']} apart: "
+                         f"{ref['relative']['median_t_m']:.3f} m {ref['relative']['median_r_deg']:.2f} deg")
     rel = pose["relative"]
     if rel["pairs"]:
         lines.append(

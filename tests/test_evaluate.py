@@ -368,6 +368,8 @@ def test_evaluate_refine_reports_both_and_the_csv_agrees(run: Path, synth_shards
     refined = report["pose"]["refined"]
     assert refined["neighbours"] == 2 and refined["test"]["frames"] == SCENE_FRAMES
     assert refined["matcher"] == "klt+sift"
+    rel = refined["relative"]
+    assert f"refined relative pose, frames {rel['k']} apart: {rel['median_t_m']:.3f} m" in res.stdout
     assert "refined, nearest train" in res.stdout and "against the 2 nearest training frames" in res.stdout
     with (tmp_path / "r.frames.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
