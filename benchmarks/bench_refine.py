@@ -36,7 +36,7 @@ def main() -> None:
     from relocdepth.dataset import open_dataset
     from relocdepth.localize import Frame, localize_frames
     from relocdepth.predictor import Predictor
-    from relocdepth.refine import Refiner
+    from relocdepth.refine import Refiner, predict_poses
 
     print(f"load average at start: {os.getloadavg()[0]:.2f}; torch threads {torch.get_num_threads()}")
     ds = open_dataset(a.shards)
@@ -44,7 +44,8 @@ def main() -> None:
     test = [r for r in ds.records if r.split == "test"][: a.frames]
     predictor = Predictor.from_checkpoint(a.checkpoint)
     t0 = time.perf_counter()
-    refiner = Refiner.from_images(predictor, lambda i: ds.read_image(train[i]), [r.intrinsics for r in train])
+    read, intrinsics = (lambda i: ds.read_image(train[i])), [r.intrinsics for r in train]
+    refiner = Refiner.from_images(predictor, read, intrinsics, predict_poses(predictor, read, intrinsics))
     map_s = time.perf_counter() - t0
     frames = [Frame(r.key, str(ds.root), float(i), ds.read_image(r)) for i, r in enumerate(test)]
 

@@ -18,6 +18,7 @@ import logging
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +26,9 @@ from relocdepth import eval_geometry as EG
 from relocdepth import metrics as M
 from relocdepth.errors import UserError
 from relocdepth.trajectory import sim3_to_dict
+
+if TYPE_CHECKING:
+    from relocdepth.refine import RefineConfig
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +55,13 @@ class EvalConfig:
     refine_neighbours: int = 3
     refine_min_pairs: int = 2
     refine_matcher: str = "klt+sift"
+
+    def refine_config(self) -> RefineConfig | None:
+        """The refinement's config when ``refine`` is on (a bad option: :class:`UserError`)."""
+        from relocdepth.refine import RefineConfig
+
+        return RefineConfig.from_options(self.refine_neighbours, self.refine_min_pairs,
+                                         self.refine_matcher) if self.refine else None
 
 
 @dataclass
@@ -231,12 +242,7 @@ def evaluate(
     from relocdepth.predictor import Predictor
     from relocdepth.schemas import validate
 
-    from relocdepth.refine import MATCHERS
-
-    if cfg.refine and (cfg.refine_matcher not in MATCHERS or min(cfg.refine_neighbours,
-                                                                  cfg.refine_min_pairs) < 1):
-        raise UserError(f"--refine needs --refine-matcher one of {', '.join(MATCHERS)} (got "
-                        f"{cfg.refine_matcher!r}) and --refine-neighbours, --refine-min-pairs >= 1")
+    refine = cfg.refine_config()  # checked before any work
     ds = open_dataset(shards)
     train_recs, test_recs = _checked_records(ds, cfg.test_sequences)
     predictor = Predictor.from_checkpoint(checkpoint, device=str(pick_device(cfg.device)))
@@ -262,12 +268,10 @@ def evaluate(
     depth = M.depth_summary(te.depth)
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
-    if cfg.refine:
-        raw, used = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est,
-                                      cfg.refine_neighbours, cfg.refine_min_pairs, cfg.refine_matcher)
+    if refine is not None:
+        raw, used = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est, refine)
         pose["refined"], refined_al = refined_report(fit, train_est, train_gt, raw, test_gt, used,
-                                                     te.sequences, cfg.refine_neighbours,
-                                                     cfg.refine_min_pairs, cfg.refine_matcher, cfg.relative_k)
+                                                     te.sequences, refine, cfg.relative_k)
         refined = (*EG.pose_errors(refined_al, test_gt), used)
     report = {
         "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
@@ -331,17 +335,15 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
 
 
 def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_est: np.ndarray,
-                      test_est: np.ndarray, neighbours: int, min_pairs: int = 2,
-                      matcher: str = "klt+sift") -> tuple[np.ndarray, np.ndarray]:
+                      test_est: np.ndarray, refine: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
     """Each test pose refined against its nearest training frames (:mod:`relocdepth.refine`, the
     network's own poses of the training frames as the map); returns (raw refined poses (N, 4, 4)
     in the networks' frame, pairs agreeing per frame (N,))."""
     from relocdepth.progress import progress_bar
-    from relocdepth.refine import RefineConfig, Refiner
+    from relocdepth.refine import Refiner
 
     refiner = Refiner.from_images(predictor, lambda i: ds.read_image(train_recs[i]),
-                                  [r.intrinsics for r in train_recs], T_wc=train_est,
-                                  cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs, matcher=matcher))
+                                  [r.intrinsics for r in train_recs], train_est, refine)
     out, used = np.empty_like(test_est), np.zeros(len(test_recs), int)
     with progress_bar("evaluate", "frames") as progress:
         task = progress.add_task("refine test", total=len(test_recs))
@@ -352,8 +354,8 @@ def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_es
 
 
 def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, refined: np.ndarray,
-                   test_gt: np.ndarray, used: np.ndarray, test_sequences: list[str], neighbours: int,
-                   min_pairs: int = 2, matcher: str = "klt+sift", relative_k: int = 5) -> tuple[dict, np.ndarray]:
+                   test_gt: np.ndarray, used: np.ndarray, test_sequences: list[str], refine: RefineConfig,
+                   relative_k: int = 5) -> tuple[dict, np.ndarray]:
     """The refined test poses under the same alignment as the network's (fitted on the
     network's training poses); returns (report section ``pose.refined``, aligned poses)."""
     al = EG.apply_sim3(fit.scale, fit.R, fit.t, refined)
@@ -365,10 +367,10 @@ def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, re
         "per_sequence": M.pose_summary_by_sequence(t_err, r_err, test_sequences),
         "rotation_only": {"median_r_deg": float(np.median(rot_only)), "mean_r_deg": float(np.mean(rot_only))},
         "relative": M.relative_pose_errors(al, test_gt, test_sequences, relative_k),
-        "neighbours": int(neighbours),
-        "min_pairs": int(min_pairs),
-        "matcher": matcher,
-        "network_pose_kept": int(np.sum(used < min_pairs)),
+        "neighbours": refine.neighbours,
+        "min_pairs": refine.min_pairs,
+        "matcher": refine.matcher,
+        "network_pose_kept": int(np.sum(used < refine.min_pairs)),
     }, al
 
 

@@ -28,7 +28,7 @@ from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
-from relocdepth.refine import MATCHERS, RefineConfig, Refiner, cached_map_poses, predict_poses
+from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, predict_poses
 from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
@@ -285,18 +285,13 @@ def localize_frames(
     return records
 
 
-def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, min_pairs: int = 2,
-                     matcher: str = "klt+sift") -> Refiner:
+def training_refiner(predictor: Predictor, shards: str | Path, cfg: RefineConfig) -> Refiner:
     """A :class:`Refiner` whose map is the training frames of ``shards`` (the network's poses of
     them, from the run's stored map when this checkpoint built it from these frames, else
     predicted here with a progress report)."""
     from relocdepth.dataset import open_dataset
     from relocdepth.progress import progress_bar
 
-    if neighbours < 1 or min_pairs < 1:
-        raise UserError("--refine-neighbours and --refine-min-pairs must be at least 1")
-    if matcher not in MATCHERS:
-        raise UserError(f"unknown --refine-matcher {matcher!r}; use one of {', '.join(MATCHERS)}")
     ds = open_dataset(shards)
     recs = [r for r in ds.records if r.split == "train"]
     if not recs:
@@ -311,8 +306,7 @@ def training_refiner(predictor: Predictor, shards: str | Path, neighbours: int, 
             return predict_poses(predictor, read, intrinsics, on_batch=lambda n: bar.advance(task, n))
 
     T_wc = cached_map_poses(Path(predictor.meta["path"]), ds.manifest_hash, [r.key for r in recs], compute)
-    return Refiner.from_images(predictor, read, intrinsics, T_wc=T_wc,
-                               cfg=RefineConfig(neighbours=neighbours, min_pairs=min_pairs, matcher=matcher))
+    return Refiner.from_images(predictor, read, intrinsics, T_wc, cfg)
 
 
 def format_records(records: list[dict], fmt: str) -> str:
@@ -344,12 +338,13 @@ def localize(
     if cfg.batch_size < 1:
         raise UserError("--batch-size must be at least 1")
     items = expand_inputs(inputs)
+    refine_cfg = None if cfg.refine is None else RefineConfig.from_options(
+        cfg.refine_neighbours, cfg.refine_min_pairs, cfg.refine_matcher)
     calibrated = Calibrated(cfg.K_file) if cfg.K_file else None
     predictor = Predictor.from_checkpoint(cfg.checkpoint, device=str(pick_device(cfg.device)))
     if cfg.output and Path(cfg.output).is_dir():
         raise UserError(f"--output {cfg.output} is a folder; give a file name")
-    refiner = training_refiner(predictor, cfg.refine, cfg.refine_neighbours,
-                                cfg.refine_min_pairs, cfg.refine_matcher) if cfg.refine else None
+    refiner = None if cfg.refine is None else training_refiner(predictor, cfg.refine, refine_cfg)
     depth = DepthWriter(cfg.depth_out) if cfg.depth_out else None
     try:
         stream = None if on_text is None else (lambda recs: on_text(format_records(recs, cfg.format)))

@@ -47,6 +47,7 @@ import cv2
 import numpy as np
 
 from relocdepth.camera import Intrinsics
+from relocdepth.errors import UserError
 from relocdepth.eval_geometry import rotation_angle_deg
 from relocdepth.fileio import atomic_write
 from relocdepth.predictor import Predictor, resize_to
@@ -70,6 +71,15 @@ class RefineConfig:
     matcher: str = "klt+sift"
     cache: int = 512  # training frames whose image and depth are kept in memory
 
+    @classmethod
+    def from_options(cls, neighbours: int, min_pairs: int, matcher: str) -> RefineConfig:
+        """The config of the ``--refine-*`` options; a bad value is a :class:`UserError`."""
+        if matcher not in MATCHERS:
+            raise UserError(f"unknown --refine-matcher {matcher!r}; use one of {', '.join(MATCHERS)}")
+        if min(neighbours, min_pairs) < 1:
+            raise UserError("--refine-neighbours and --refine-min-pairs must be at least 1")
+        return cls(neighbours=neighbours, min_pairs=min_pairs, matcher=matcher)
+
 
 @dataclass
 class RefFrame:
@@ -91,9 +101,6 @@ class Reference:
             raise ValueError(f"expected (N, 4, 4) training poses with N >= 1, got {T_wc.shape}")
         self.T_wc, self._load, self._cache_size = T_wc, load, max(1, cache)
         self._cache: OrderedDict[int, RefFrame] = OrderedDict()
-
-    def __len__(self) -> int:
-        return len(self.T_wc)
 
     def frame(self, i: int) -> RefFrame:
         if i in self._cache:
@@ -145,14 +152,11 @@ class Refiner:
 
     @classmethod
     def from_images(cls, predictor: Predictor, read: Callable[[int], np.ndarray],
-                    intrinsics: list[Intrinsics], T_wc: np.ndarray | None = None,
-                    cfg: RefineConfig = RefineConfig(), batch_size: int = 16,
-                    on_batch: Callable[[int], None] | None = None) -> Refiner:
-        """The map of N training images (``read(i)``: RGB uint8, ``intrinsics[i]``); ``T_wc``:
-        the predictor's poses of them when already at hand (else predicted here, in batches,
-        ``on_batch(n)`` after each)."""
-        if T_wc is None:
-            T_wc = predict_poses(predictor, read, intrinsics, batch_size, on_batch)
+                    intrinsics: list[Intrinsics], T_wc: np.ndarray,
+                    cfg: RefineConfig = RefineConfig()) -> Refiner:
+        """The map of N training images (``read(i)``: RGB uint8, ``intrinsics[i]``) whose poses
+        by the predictor are ``T_wc`` (:func:`predict_poses`, or stored)."""
+
         def load(i: int) -> RefFrame:
             img = read(i)
             depth = predictor.predict([img], [intrinsics[i]], with_depth=True).depth[0]

@@ -59,7 +59,7 @@ def format_table(report: dict) -> str:
         lines.append(
             f"refined against the {ref['neighbours']} nearest training frames: rotation-only "
             f"{ref['rotation_only']['median_r_deg']:.2f} deg; {ref['network_pose_kept']} test frame(s) "
-            f"kept the network's pose (under {ref.get('min_pairs', 2)} pairs agreeing)"
+            f"kept the network's pose (under {ref['min_pairs']} pairs agreeing)"
         )
         if ref["relative"].get("pairs"):
             lines.append(f"  refined relative pose, frames {ref['relative']['k']} apart: "
