@@ -6,8 +6,10 @@ frames, interleaved passes, best of ``--reps``:
 
 - ``network``: the localize path (``localize_frames``, batch 1) without refinement;
 - ``refined``: the same with a :class:`relocdepth.refine.Refiner` whose map (the training frames'
-  poses) is built beforehand; the depth of the neighbours is cached across passes only from the
-  second pass on, so the first refined pass's time is reported apart (``cold``);
+  poses) is built beforehand (the defaults: pairs, then direct alignment); the depth of the
+  neighbours is cached across passes only from the second pass on, so the first refined pass's
+  time is reported apart (``cold``);
+- ``pairs``: the same refiner without the direct alignment (``--no-refine-align``);
 - ``map``: building the map once (one forward pass per training frame, batch 16).
 
     python benchmarks/bench_refine.py SHARDS --checkpoint RUN [--frames 40] [--reps 2] [--threads 1]
@@ -36,6 +38,8 @@ def main() -> None:
     from relocdepth.dataset import open_dataset
     from relocdepth.localize import Frame, localize_frames
     from relocdepth.predictor import Predictor
+    from dataclasses import replace
+
     from relocdepth.refine import Refiner, predict_poses
 
     print(f"load average at start: {os.getloadavg()[0]:.2f}; torch threads {torch.get_num_threads()}")
@@ -47,6 +51,7 @@ def main() -> None:
     read, intrinsics = (lambda i: ds.read_image(train[i])), [r.intrinsics for r in train]
     refiner = Refiner.from_images(predictor, read, intrinsics, predict_poses(predictor, read, intrinsics))
     map_s = time.perf_counter() - t0
+    pairs = Refiner(predictor, refiner.ref, replace(refiner.cfg, align=False))  # same map and cache
     frames = [Frame(r.key, str(ds.root), float(i), ds.read_image(r)) for i, r in enumerate(test)]
 
     def timed(ref: Refiner | None) -> float:
@@ -55,15 +60,16 @@ def main() -> None:
         return (time.perf_counter() - t) / len(frames)
 
     cold = timed(refiner)
-    best = {"network": float("inf"), "refined": float("inf")}
+    best = {"network": float("inf"), "refined": float("inf"), "pairs": float("inf")}
     for _ in range(a.reps):
         best["network"] = min(best["network"], timed(None))
         best["refined"] = min(best["refined"], timed(refiner))
-    n, r = best["network"] * 1e3, best["refined"] * 1e3
+        best["pairs"] = min(best["pairs"], timed(pairs))
+    n, r, p = best["network"] * 1e3, best["refined"] * 1e3, best["pairs"] * 1e3
     print(f"map of {len(train)} training frames: {map_s:.1f} s ({map_s / len(train) * 1e3:.0f} ms a frame)")
     print(f"{len(frames)} queries at {predictor.input_size[0]}x{predictor.input_size[1]}, batch 1: network "
-          f"{n:.0f} ms/image, refined {r:.0f} ms/image ({r / n:.2f}x), refined cold (neighbours' depth not "
-          f"cached yet) {cold * 1e3:.0f} ms/image")
+          f"{n:.0f} ms/image, refined {r:.0f} ms/image ({r / n:.2f}x; pairs alone {p:.0f} ms/image, "
+          f"{p / n:.2f}x), refined cold (neighbours' depth not cached yet) {cold * 1e3:.0f} ms/image")
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
 
 

@@ -31,6 +31,10 @@ class RefineMatcher(str, Enum):
 REFINE_MATCHER_HELP = ("With --refine: how a pair is matched: klt (the bootstrap's tracks: precise, short "
                        "baselines), sift (descriptors: wider baselines, less precise), klt+sift (SIFT where "
                        "KLT fails).")
+REFINE_ALIGN_HELP = ("With --refine: after the pairs, align the pose to the nearest training frames pixel by "
+                     "pixel (their images and the network's depth), from the pairs' pose and from the "
+                     "network's; the aligned pose is used when it explains those frames clearly better than "
+                     "their mean brightness does.")
 
 
 def user_errors(fn: F) -> F:

@@ -55,13 +55,14 @@ class EvalConfig:
     refine_neighbours: int = 3
     refine_min_pairs: int = 2
     refine_matcher: str = "klt+sift"
+    refine_align: bool = True
 
     def refine_config(self) -> RefineConfig | None:
         """The refinement's config when ``refine`` is on (a bad option: :class:`UserError`)."""
         from relocdepth.refine import RefineConfig
 
         return RefineConfig.from_options(self.refine_neighbours, self.refine_min_pairs,
-                                         self.refine_matcher) if self.refine else None
+                                         self.refine_matcher, self.refine_align) if self.refine else None
 
 
 @dataclass
@@ -269,10 +270,10 @@ def evaluate(
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
     if refine is not None:
-        raw, used = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est, refine)
-        pose["refined"], refined_al = refined_report(fit, train_est, train_gt, raw, test_gt, used,
+        raw, used, by = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est, refine)
+        pose["refined"], refined_al = refined_report(fit, train_est, train_gt, raw, test_gt, by,
                                                      te.sequences, refine, cfg.relative_k)
-        refined = (*EG.pose_errors(refined_al, test_gt), used)
+        refined = (*EG.pose_errors(refined_al, test_gt), used, by)
     report = {
         "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
         "tool_version": _tool_version(), "created": created,
@@ -311,14 +312,14 @@ def frames_csv_path(report_path: Path) -> Path:
 
 
 FRAMES_CSV_HEADER = ("sequence", "frame", "t_err_m", "r_err_deg", "confidence", "nearest_train_m")
-FRAMES_CSV_REFINED = ("refined_t_err_m", "refined_r_err_deg", "refined_pairs")
+FRAMES_CSV_REFINED = ("refined_t_err_m", "refined_r_err_deg", "refined_pairs", "refined_by")
 
 
 def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m: np.ndarray,
-                  refined: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> str:
+                  refined: tuple[np.ndarray, np.ndarray, np.ndarray, list[str]] | None = None) -> str:
     """CSV text: one row per test frame (errors after the Sim(3), the frame's confidence, and the
     distance from its true camera centre to the nearest training frame's); with ``refined``
-    (t_err, r_err, pairs agreeing) the refined pose's errors too."""
+    (t_err, r_err, pairs agreeing, what placed it) the refined pose's errors too."""
     import csv
     import io
 
@@ -329,32 +330,34 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
     for i, (seq, frame, t, r, c, n) in enumerate(rows):
         row = [seq, frame, f"{t:.6g}", f"{r:.6g}", f"{c:.6g}", f"{n:.6g}"]
         if refined is not None:
-            row += [f"{refined[0][i]:.6g}", f"{refined[1][i]:.6g}", str(int(refined[2][i]))]
+            row += [f"{refined[0][i]:.6g}", f"{refined[1][i]:.6g}", str(int(refined[2][i])), refined[3][i]]
         w.writerow(row)
     return buf.getvalue()
 
 
 def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_est: np.ndarray,
-                      test_est: np.ndarray, refine: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
+                      test_est: np.ndarray, refine: RefineConfig) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Each test pose refined against its nearest training frames (:mod:`relocdepth.refine`, the
     network's own poses of the training frames as the map); returns (raw refined poses (N, 4, 4)
-    in the networks' frame, pairs agreeing per frame (N,))."""
+    in the networks' frame, pairs agreeing per frame (N,), what placed each: ``Refined.by``)."""
     from relocdepth.progress import progress_bar
     from relocdepth.refine import Refiner
 
     refiner = Refiner.from_images(predictor, lambda i: ds.read_image(train_recs[i]),
                                   [r.intrinsics for r in train_recs], train_est, refine)
-    out, used = np.empty_like(test_est), np.zeros(len(test_recs), int)
+    out, used, by = np.empty_like(test_est), np.zeros(len(test_recs), int), []
     with progress_bar("evaluate", "frames") as progress:
         task = progress.add_task("refine test", total=len(test_recs))
         for i, rec in enumerate(test_recs):
-            out[i], used[i] = refiner.refine(ds.read_image(rec), rec.intrinsics, test_est[i])
+            r = refiner.refine(ds.read_image(rec), rec.intrinsics, test_est[i])
+            out[i], used[i] = r.T_wc, r.pairs
+            by.append(r.by)
             progress.advance(task, 1)
-    return out, used
+    return out, used, by
 
 
 def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, refined: np.ndarray,
-                   test_gt: np.ndarray, used: np.ndarray, test_sequences: list[str], refine: RefineConfig,
+                   test_gt: np.ndarray, by: list[str], test_sequences: list[str], refine: RefineConfig,
                    relative_k: int = 5) -> tuple[dict, np.ndarray]:
     """The refined test poses under the same alignment as the network's (fitted on the
     network's training poses); returns (report section ``pose.refined``, aligned poses)."""
@@ -370,7 +373,9 @@ def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, re
         "neighbours": refine.neighbours,
         "min_pairs": refine.min_pairs,
         "matcher": refine.matcher,
-        "network_pose_kept": int(np.sum(used < refine.min_pairs)),
+        "align": refine.align,
+        "aligned": by.count("aligned"),
+        "network_pose_kept": by.count("none"),
     }, al
 
 

@@ -56,6 +56,7 @@ class LocalizeConfig:
     refine_neighbours: int = 3
     refine_min_pairs: int = 2
     refine_matcher: str = "klt+sift"
+    refine_align: bool = True
 
 
 @dataclass(frozen=True)
@@ -250,15 +251,15 @@ def localize_frames(
     def flush() -> None:
         imgs = [f.image for f, _ in batch]
         pred = predictor.predict(imgs, [k for _, k in batch], with_depth=depth is not None)
-        T, pairs = pred.T_wc, None
+        T, refined = pred.T_wc, None
         if refiner is not None:
             refined = [refiner.refine(f.image, k, T[i]) for i, (f, k) in enumerate(batch)]
-            T, pairs = np.stack([r[0] for r in refined]), [r[1] for r in refined]
+            T = np.stack([r.T_wc for r in refined])
         T = apply_sim3_dict(align, T) if align else T
         for i, (f, _) in enumerate(batch):
             rec = _record(f, len(records), T[i], pred, i, align is not None)
-            if pairs is not None:
-                rec["refined_pairs"] = pairs[i]
+            if refined is not None:
+                rec["refined_pairs"], rec["refined_by"] = refined[i].pairs, refined[i].by
             if depth is not None:
                 h, w = f.image.shape[:2]
                 d = cv2.resize(pred.depth[i] * scale, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -339,7 +340,7 @@ def localize(
         raise UserError("--batch-size must be at least 1")
     items = expand_inputs(inputs)
     refine_cfg = None if cfg.refine is None else RefineConfig.from_options(
-        cfg.refine_neighbours, cfg.refine_min_pairs, cfg.refine_matcher)
+        cfg.refine_neighbours, cfg.refine_min_pairs, cfg.refine_matcher, cfg.refine_align)
     calibrated = Calibrated(cfg.K_file) if cfg.K_file else None
     predictor = Predictor.from_checkpoint(cfg.checkpoint, device=str(pick_device(cfg.device)))
     if cfg.output and Path(cfg.output).is_dir():

@@ -19,15 +19,22 @@ between them. Refinement keeps what it does well and measures the rest:
    pair with too little parallax to measure a translation puts the query at the training
    frame's centre, which is then closer than the parallax floor, ~1 px of baseline);
 4. every pair proposes ``T_wc[n] T_{q<-n}^-1``, and :func:`relocdepth.vo.robust_mean_transform`
-   averages the proposals (rotation medoid, inliers within ``inlier_deg``).
+   averages the proposals (rotation medoid, inliers within ``inlier_deg``);
+5. direct alignment (``align``, :mod:`relocdepth.photoalign`): the pairs' mean and the network's
+   pose are each aligned to the neighbours pixel by pixel (their images, the network's depth,
+   their map poses), and the aligned pose that explains the neighbours better is kept when it
+   explains them clearly better than their mean brightness does. The pairs reach a few
+   centimetres; the alignment a few millimetres where the views overlap, and a start that the
+   pairs got wrong loses to the network's (README, *Quality*).
 
 One round: picking the neighbours again from the refined pose and pairing again was measured
 worse on trained networks (README, *Quality*).
 
-A query with fewer than ``min_pairs`` agreeing proposals keeps the network's pose: one pair alone
-is not checked by another, and on real images the lone pairs were the wrong ones (a pair across
-~0.5 m of a walk-through at 192x128 either fails or misleads; README, *Quality*). Nothing here
-needs ground truth: the map is the network's, depth the network's; the protocol's alignment applies to the
+A query with fewer than ``min_pairs`` agreeing proposals has no pairs' start (the network's pose
+is aligned alone, and kept when that alignment is not trusted): one pair alone is not checked by
+another, and on real images the lone pairs were the wrong ones (a pair across ~0.5 m of a
+walk-through at 192x128 either fails or misleads; README, *Quality*). Nothing here needs ground
+truth: the map is the network's, depth the network's; the protocol's alignment applies to the
 refined pose as to the network's. The paper localizes with the network alone, so this is an
 addition (off by default; README, fidelity table).
 """
@@ -50,6 +57,7 @@ from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
 from relocdepth.eval_geometry import rotation_angle_deg
 from relocdepth.fileio import atomic_write
+from relocdepth.photoalign import AlignConfig, View, align
 from relocdepth.predictor import Predictor, resize_to
 from relocdepth.vo import VOConfig, pair_pose, robust_mean_transform, wide_pair_pose
 
@@ -70,15 +78,19 @@ class RefineConfig:
     # baselines, less precise) or "klt+sift" (SIFT where KLT fails)
     matcher: str = "klt+sift"
     cache: int = 512  # training frames whose image and depth are kept in memory
+    # direct alignment to the neighbours (relocdepth.photoalign) from the two-view pose and from
+    # the network's, the one that explains the neighbours' pixels better kept
+    align: bool = True
+    photometric: AlignConfig = AlignConfig()
 
     @classmethod
-    def from_options(cls, neighbours: int, min_pairs: int, matcher: str) -> RefineConfig:
+    def from_options(cls, neighbours: int, min_pairs: int, matcher: str, align: bool = True) -> RefineConfig:
         """The config of the ``--refine-*`` options; a bad value is a :class:`UserError`."""
         if matcher not in MATCHERS:
             raise UserError(f"unknown --refine-matcher {matcher!r}; use one of {', '.join(MATCHERS)}")
         if min(neighbours, min_pairs) < 1:
             raise UserError("--refine-neighbours and --refine-min-pairs must be at least 1")
-        return cls(neighbours=neighbours, min_pairs=min_pairs, matcher=matcher)
+        return cls(neighbours=neighbours, min_pairs=min_pairs, matcher=matcher, align=align)
 
 
 @dataclass
@@ -120,16 +132,36 @@ class Reference:
         return order[:k]
 
 
+@dataclass
+class Refined:
+    """A refined pose: ``T_wc (4, 4)`` in the map's world and units, the pairs that agreed, and
+    what placed it (:data:`REFINED_BY`): "aligned" (direct alignment to the neighbours), "pairs"
+    (the pairs' robust mean; alignment off or not trusted) or "none" (the network's pose)."""
+
+    T_wc: np.ndarray
+    pairs: int
+    by: str
+
+
+REFINED_BY = ("aligned", "pairs", "none")
+
+
 def refine_pose(ref: Reference, image: np.ndarray, intrinsics: Intrinsics, T_wc: np.ndarray,
-                cfg: RefineConfig = RefineConfig()) -> tuple[np.ndarray, int]:
-    """The query's refined ``T_wc (4, 4)`` (the map's world and units) and how many of its pairs
-    agreed; under ``cfg.min_pairs`` the network's ``T_wc`` is returned. ``image``: RGB uint8 at
-    any size, ``intrinsics`` its camera; it is resized to each training frame's size."""
+                cfg: RefineConfig = RefineConfig()) -> Refined:
+    """The query's refined pose. ``image``: RGB uint8 at any size, ``intrinsics`` its camera; it is
+    resized to each training frame's size for the pairs. With ``cfg.min_pairs`` agreeing pairs
+    their robust mean is a start; the network's ``T_wc`` is the other. With ``cfg.align`` each start
+    is aligned to the neighbours (:func:`relocdepth.photoalign.align`) and the aligned pose that
+    explains them better is the answer when it explains them clearly
+    (:attr:`~relocdepth.photoalign.AlignResult.accepted`); otherwise the pairs' mean, or without
+    it the network's pose."""
     if cfg.matcher not in MATCHERS:
         raise ValueError(f"matcher must be one of {MATCHERS}, not {cfg.matcher!r}")
-    proposals = []
-    for n in ref.neighbours(np.asarray(T_wc, np.float64), cfg.neighbours, cfg.max_view_deg):
+    T_net = np.asarray(T_wc, np.float64)
+    proposals, views = [], []
+    for n in ref.neighbours(T_net, cfg.neighbours, cfg.max_view_deg):
         f = ref.frame(int(n))
+        views.append(View(f.image, f.depth, f.K, ref.T_wc[n]))
         h, w = f.image.shape[:2]
         args = (f.image, resize_to(image, (w, h)), f.K, intrinsics.scaled(w, h).K(), f.depth, VOConfig())
         p = pair_pose(*args) if cfg.matcher != "sift" else None
@@ -137,11 +169,19 @@ def refine_pose(ref: Reference, image: np.ndarray, intrinsics: Intrinsics, T_wc:
             p = wide_pair_pose(*args)
         if p.ok:  # unmeasured translation: under the parallax floor, the query is about there
             proposals.append(ref.T_wc[n] @ np.linalg.inv(p.T))
-    if not proposals:
-        return np.asarray(T_wc, np.float64), 0
-    T, inl = robust_mean_transform(np.stack(proposals), cfg.inlier_deg)
-    agreeing = int(inl.sum())
-    return (T if agreeing >= cfg.min_pairs else np.asarray(T_wc, np.float64)), agreeing
+    out = Refined(T_net, 0, "none")
+    if proposals:
+        T, inl = robust_mean_transform(np.stack(proposals), cfg.inlier_deg)
+        out.pairs = int(inl.sum())
+        if out.pairs >= cfg.min_pairs:
+            out.T_wc, out.by = T, "pairs"
+    if cfg.align:
+        K_q = intrinsics.scaled(image.shape[1], image.shape[0]).K()
+        starts = [T_net] + ([out.T_wc] if out.by == "pairs" else [])
+        best = min((align(views, image, K_q, T, cfg.photometric) for T in starts), key=lambda r: r.cost)
+        if best.accepted:
+            out.T_wc, out.by = best.T_wc, "aligned"
+    return out
 
 
 class Refiner:
@@ -166,7 +206,7 @@ class Refiner:
 
         return cls(predictor, Reference(T_wc, load, cfg.cache), cfg)
 
-    def refine(self, image: np.ndarray, intrinsics: Intrinsics, T_wc: np.ndarray) -> tuple[np.ndarray, int]:
+    def refine(self, image: np.ndarray, intrinsics: Intrinsics, T_wc: np.ndarray) -> Refined:
         """:func:`refine_pose` of one query image (RGB uint8 at any size, its intrinsics) whose
         network pose is ``T_wc``."""
         return refine_pose(self.ref, image, intrinsics, T_wc, self.cfg)

@@ -58,8 +58,9 @@ def format_table(report: dict) -> str:
         ref = pose["refined"]
         lines.append(
             f"refined against the {ref['neighbours']} nearest training frames: rotation-only "
-            f"{ref['rotation_only']['median_r_deg']:.2f} deg; {ref['network_pose_kept']} test frame(s) "
-            f"kept the network's pose (under {ref['min_pairs']} pairs agreeing)"
+            f"{ref['rotation_only']['median_r_deg']:.2f} deg; "
+            + (f"{ref['aligned']} test frame(s) placed by direct alignment, " if "aligned" in ref else "")
+            + f"{ref['network_pose_kept']} kept the network's pose"
         )
         if ref["relative"].get("pairs"):
             lines.append(f"  refined relative pose, frames {ref['relative']['k']} apart: "

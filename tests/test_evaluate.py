@@ -19,6 +19,7 @@ from relocdepth import metrics as M
 from relocdepth.dataset import open_dataset
 from relocdepth.errors import UserError
 from relocdepth.evaluate import baselines_report, pose_report
+from relocdepth.refine import REFINED_BY
 from relocdepth.trajectory import read_tum
 
 
@@ -373,13 +374,16 @@ def test_evaluate_refine_reports_both_and_the_csv_agrees(run: Path, synth_shards
     assert "refined, nearest train" in res.stdout and "against the 2 nearest training frames" in res.stdout
     with (tmp_path / "r.frames.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0])[-3:] == ["refined_t_err_m", "refined_r_err_deg", "refined_pairs"]
+    assert list(rows[0])[-4:] == ["refined_t_err_m", "refined_r_err_deg", "refined_pairs", "refined_by"]
     pairs = np.array([int(r["refined_pairs"]) for r in rows])
+    by = np.array([r["refined_by"] for r in rows])
     t_net = np.array([float(r["t_err_m"]) for r in rows])
     t_ref = np.array([float(r["refined_t_err_m"]) for r in rows])
-    assert np.all((pairs >= 0) & (pairs <= 2))
-    kept = pairs < refined["min_pairs"]
+    assert np.all((pairs >= 0) & (pairs <= 2)) and set(by) <= set(REFINED_BY)
+    kept = by == "none"
     assert refined["min_pairs"] == 2 and refined["network_pose_kept"] == int(np.sum(kept))
+    assert refined["align"] is True and refined["aligned"] == int(np.sum(by == "aligned"))
+    assert np.all(pairs[kept] < 2) and np.all(pairs[by == "pairs"] >= 2)
     np.testing.assert_allclose(t_ref[kept], t_net[kept], rtol=1e-4, atol=1e-6)
     assert np.median(t_ref) == pytest.approx(refined["test"]["median_t_m"], rel=1e-4)
     # without --refine the report and the CSV stay as they were

@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 
 from relocdepth.camera import Intrinsics
 from relocdepth.eval_geometry import quat_wxyz_to_rotmat, quat_xyzw_to_wxyz
+from relocdepth.refine import REFINED_BY
 from relocdepth.trajectory import read_tum
 
 FRAMES = 6  # frames of the query folder / video (few: forward passes are the slow part)
@@ -209,21 +210,25 @@ def test_depth_png_scale(run: Path, folder: Path, tmp_path: Path) -> None:
 
 def test_refine_against_the_training_frames(run: Path, folder: Path, synth_shards: Path,
                                             tmp_path: Path) -> None:
-    """--refine SHARDS: each line says how many pairs agreed; a frame with under two keeps the
-    network's pose, the others move; a missing dataset is a one-line error."""
+    """--refine SHARDS: each line says how many pairs agreed and what placed it; a frame placed by
+    nothing ("none": under the agreeing pairs needed, no trusted alignment) keeps the network's
+    pose, the others move; a missing dataset is a one-line error."""
     run = copy_run(run, tmp_path / "run")  # --refine stores its map with the run
     plain = records(invoke(str(folder), "--checkpoint", str(run)))
-    for need in (2, 1):  # a network trained for one step: its poses agree rarely, so also 1
+    # a network trained for one step: its poses agree rarely, so also 1; alignment on and off
+    moved = 0
+    for need, align in ((2, "--no-refine-align"), (1, "--no-refine-align"), (2, "--refine-align")):
         refined = records(invoke(str(folder), "--checkpoint", str(run), "--refine", str(synth_shards),
-                                 "--refine-min-pairs", str(need)))
+                                 "--refine-min-pairs", str(need), align))
         assert len(refined) == len(plain) == FRAMES
-        moved = 0
         for p, r in zip(plain, refined):
             assert 0 <= r["refined_pairs"] <= 3 and "refined_pairs" not in p
+            assert r["refined_by"] in (("pairs", "none") if align == "--no-refine-align" else REFINED_BY)
+            assert (r["refined_by"] == "pairs") == (r["refined_pairs"] >= need) or r["refined_by"] == "aligned"
             R = np.array(r["T_wc"])[:3, :3]
             np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
             same = np.allclose(r["T_wc"], p["T_wc"], atol=1e-9)
-            assert same == (r["refined_pairs"] < need), r
+            assert same == (r["refined_by"] == "none"), r
             moved += not same
     assert moved > 0
     assert_user_error(invoke(str(folder), "--checkpoint", str(run), "--refine", str(folder.parent / "nope")),

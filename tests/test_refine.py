@@ -52,6 +52,11 @@ def _reference(rendered: dict, loads: list[int] | None = None) -> Reference:
     return Reference(_scaled(rendered["path"][mine], UNITS), load)
 
 
+def _refine(*args) -> tuple[np.ndarray, int, str]:
+    r = refine_pose(*args)
+    return r.T_wc, r.pairs, r.by
+
+
 def _errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """Centre error in metres (the map is in UNITS), rotation error in degrees."""
     return (float(np.linalg.norm(T[:3, 3] - T_true[:3, 3]) / UNITS),
@@ -60,16 +65,16 @@ def _errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 
 def test_rough_pose_comes_back_to_the_true_one(rendered: dict) -> None:
     """Poses ~4 cm and ~4 deg off (under the map's spacing) come back to within the pairs' own
-    precision at 128x96 (0.1-3 cm, 0.1-1.5 deg per pair)."""
+    precision at 128x96 (0.1-3 cm, 0.1-1.5 deg per pair), the pairs alone (no alignment)."""
     ref = _reference(rendered)
     t_errs = []
     for q in rendered["queries"]:
         truth = _scaled(rendered["path"][q], UNITS)
         rough = truth @ _rigid((2.0, -3.0, 1.5), (0.03 * UNITS, -0.02 * UNITS, 0.02 * UNITS))
         assert _errors(rough, truth)[0] > 0.04
-        T, agreeing = refine_pose(ref, rendered["frames"][q][0], INTR, rough)
+        T, agreeing, by = _refine(ref, rendered["frames"][q][0], INTR, rough, RefineConfig(align=False))
         t_err, r_err = _errors(T, truth)
-        assert agreeing >= 2, q
+        assert agreeing >= 2 and by == "pairs", q
         assert t_err < 0.025 and r_err < 1.0, (q, t_err, r_err)
         t_errs.append(t_err)
     assert np.mean(t_errs) < 0.015, t_errs
@@ -91,8 +96,8 @@ def test_no_working_pair_keeps_the_network_pose(rendered: dict) -> None:
     ref = _reference(rendered)
     blank = np.full((INTR.height, INTR.width, 3), 128, np.uint8)  # nothing to track
     rough = _scaled(rendered["path"][21], UNITS)
-    T, agreeing = refine_pose(ref, blank, INTR, rough)
-    assert agreeing == 0
+    T, agreeing, by = _refine(ref, blank, INTR, rough)
+    assert agreeing == 0 and by == "none"
     np.testing.assert_array_equal(T, rough)
 
 
@@ -114,23 +119,76 @@ def test_one_pair_alone_does_not_move_the_pose(rendered: dict) -> None:
     truth = _scaled(rendered["path"][q], UNITS)
     rough = truth @ _rigid((1.0, 1.0, 0.0), (0.03 * UNITS, 0.0, 0.0))
     image = rendered["frames"][q][0]
-    T, agreeing = refine_pose(ref, image, INTR, rough, RefineConfig(neighbours=1))
-    assert agreeing == 1
+    T, agreeing, by = _refine(ref, image, INTR, rough, RefineConfig(neighbours=1, align=False))
+    assert agreeing == 1 and by == "none"
     np.testing.assert_array_equal(T, rough)
-    T, agreeing = refine_pose(ref, image, INTR, rough, RefineConfig(neighbours=1, min_pairs=1))
-    assert agreeing == 1 and _errors(T, truth)[0] < 0.02 < _errors(rough, truth)[0]
+    T, agreeing, by = _refine(ref, image, INTR, rough, RefineConfig(neighbours=1, min_pairs=1, align=False))
+    assert agreeing == 1 and by == "pairs" and _errors(T, truth)[0] < 0.02 < _errors(rough, truth)[0]
+
+
+def test_alignment_makes_the_pairs_precise(rendered: dict) -> None:
+    """Direct alignment to the neighbours after the pairs: within 5 mm and 0.3 deg of the truth,
+    more precise than the pairs' mean at every query."""
+    ref = _reference(rendered)
+    for q in rendered["queries"]:
+        truth = _scaled(rendered["path"][q], UNITS)
+        rough = truth @ _rigid((2.0, -3.0, 1.5), (0.03 * UNITS, -0.02 * UNITS, 0.02 * UNITS))
+        image = rendered["frames"][q][0]
+        pairs = _errors(refine_pose(ref, image, INTR, rough, RefineConfig(align=False)).T_wc, truth)
+        r = refine_pose(ref, image, INTR, rough)
+        aligned = _errors(r.T_wc, truth)
+        assert r.by == "aligned" and r.pairs >= 2
+        assert aligned[0] < 0.005 and aligned[1] < 0.3, (q, aligned)
+        assert aligned[0] < pairs[0], (q, aligned, pairs)
+
+
+def test_pairs_agreeing_on_a_wrong_pose_lose_to_the_better_start(rendered: dict,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Pairs that agree on a pose 50 cm and 15 deg off: the alignment from the network's pose (4 cm
+    off) explains the neighbours better and is kept; without alignment the wrong pose wins. With
+    the wrong pose as the network's and no pairs, its alignment explains too little to be used:
+    the pose stays as it was."""
+    import relocdepth.refine as R
+    from relocdepth.vo import PairPose
+
+    ref = _reference(rendered)
+    q = rendered["queries"][2]
+    truth = _scaled(rendered["path"][q], UNITS)
+    wrong = truth @ _rigid((0.0, 15.0, 0.0), (0.5 * UNITS, 0.0, 0.0))
+    rough = truth @ _rigid((2.0, -3.0, 1.5), (0.03 * UNITS, -0.02 * UNITS, 0.02 * UNITS))
+    picked = [int(n) for n in ref.neighbours(rough, 3, 30.0)]
+    pose_of = {id(rendered["frames"][rendered["map"][n]][0]): n for n in picked}
+
+    def agreeing_on_wrong(a, *rest):  # T_{q<-n} that puts the query at `wrong`
+        return PairPose(np.linalg.inv(wrong) @ ref.T_wc[pose_of[id(a)]], True, True)
+
+    monkeypatch.setattr(R, "pair_pose", agreeing_on_wrong)
+    image = rendered["frames"][q][0]
+    T, agreeing, by = _refine(ref, image, INTR, rough, RefineConfig(align=False))
+    assert agreeing == 3 and by == "pairs" and _errors(T, truth)[0] > 0.45
+    T, agreeing, by = _refine(ref, image, INTR, rough)
+    assert agreeing == 3 and by == "aligned" and _errors(T, truth)[0] < 0.005
+    monkeypatch.setattr(R, "pair_pose", lambda *a: PairPose(np.eye(4), False, False))
+    monkeypatch.setattr(R, "wide_pair_pose", lambda *a: PairPose(np.eye(4), False, False))
+    T, agreeing, by = _refine(ref, image, INTR, wrong)
+    assert agreeing == 0 and by == "none"
+    np.testing.assert_array_equal(T, wrong)
 
 
 def test_query_of_another_size_is_resized_to_the_map(rendered: dict) -> None:
-    """A query rendered at 256x192 (its own intrinsics) is placed as its 128x96 copy is."""
+    """A query rendered at 256x192 (its own intrinsics) is placed as its 128x96 copy is, by the
+    pairs and by the alignment (which works on the query at its own size)."""
     cfg = SynthConfig(seed=0, frames=60, width=INTR.width, height=INTR.height)
     scene = build_scene(cfg.seed, cfg)
     big = SEVEN_SCENES_INTRINSICS.scaled(256, 192)
     q = rendered["queries"][2]
     truth = _scaled(rendered["path"][q], UNITS)
     rough = truth @ _rigid((2.0, 0.0, -1.0), (0.0, 0.02 * UNITS, 0.02 * UNITS))
-    T, agreeing = refine_pose(_reference(rendered), render(scene, rendered["path"][q], big)[0], big, rough)
-    assert agreeing >= 2 and _errors(T, truth)[0] < 0.025
+    image = render(scene, rendered["path"][q], big)[0]
+    T, agreeing, by = _refine(_reference(rendered), image, big, rough, RefineConfig(align=False))
+    assert agreeing >= 2 and by == "pairs" and _errors(T, truth)[0] < 0.025
+    T, agreeing, by = _refine(_reference(rendered), image, big, rough)
+    assert by == "aligned" and _errors(T, truth)[0] < 0.005
 
 
 def test_track_size() -> None:
