@@ -16,6 +16,7 @@ neighbours, once per mode:
 
     python benchmarks/quality/refine_real.py ../shared/data/hololens-office --blocks 3
     python benchmarks/quality/refine_real.py ../shared/data/hololens-office --test 30 --offset-m 0.2
+    python benchmarks/quality/refine_real.py ../shared/data/hololens-office --blocks 3 --depth-error 0.15
 
 Prints a markdown table (median translation / rotation error, the share within 5 cm / 5 deg, the
 frames beyond 10 cm, with enough agreeing pairs, placed by the alignment, seconds a query) and writes the per-frame errors as JSON with ``--out``.
@@ -52,6 +53,14 @@ def perturb(T: np.ndarray, metres: float, degrees: float, rng: np.random.Generat
     return out
 
 
+def smooth_factor(shape: tuple[int, int], mean_rel: float, rng: np.random.Generator) -> np.ndarray:
+    """A smooth positive field (a 4x3 random grid, bicubic) whose mean |factor - 1| is ``mean_rel``."""
+    grid = rng.normal(size=(3, 4)).astype(np.float32)
+    field = cv2.resize(grid, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+    field *= np.log1p(mean_rel) / max(float(np.mean(np.abs(field))), 1e-9)
+    return np.exp(field)
+
+
 def errors(T: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return (float(np.linalg.norm(T[:3, 3] - truth[:3, 3])),
             float(rotation_angle_deg(T[:3, :3].T @ truth[:3, :3])))
@@ -67,6 +76,9 @@ def main() -> None:
     ap.add_argument("--neighbours", type=int, default=3, help="training frames paired with each query")
     ap.add_argument("--min-pairs", type=int, default=2, help="agreeing pairs needed")
     ap.add_argument("--modes", default=",".join(MODES), help=f"comma-separated, of {', '.join(MODES)}")
+    ap.add_argument("--depth-error", type=float, default=0.0,
+                    help="the map's depth off by a smooth random factor of about this mean relative error "
+                         "(a network's depth: AbsRel ~0.1-0.2), fixed per map frame (default 0: true depth)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, help="per-frame errors as JSON")
     args = ap.parse_args()
@@ -84,6 +96,8 @@ def main() -> None:
     def load(j: int) -> RefFrame:
         i = train[j]
         depth = cv2.imread(str(depths[i]), cv2.IMREAD_UNCHANGED).astype(np.float32) / 1000.0
+        if args.depth_error > 0:
+            depth *= smooth_factor(depth.shape, args.depth_error, np.random.default_rng([args.seed, i]))
         return RefFrame(read(i), K, depth)
 
     h, w = read(0).shape[:2]
