@@ -14,9 +14,13 @@ analytic: the query's image gradient at the warped pixel times the projection's 
 times ``dX_q/d(delta)`` for the update ``T_wq <- T_wq exp(delta)``, ``delta = (v, w)``:
 ``dX_q = -v + X_q x w`` (README, *Localize*: the refined pose).
 
-:func:`AlignResult.cost` is the mean robust residual over all selected pixels at the finest level,
-pixels that leave the query's image counted as a residual of ``outside``; it compares poses of
-one query against the same views (lower: explains the views better).
+:attr:`AlignResult.cost` is the mean robust residual over all selected pixels at the finest
+level; a pixel that leaves the query's image costs what its view's pixels cost when explained by
+nothing but the view's mean brightness (the *null* cost), so that looking away explains nothing.
+It compares poses of one query against the same views (lower: explains them better), and an
+aligned pose is trusted (:attr:`AlignResult.accepted`) when it is clearly below the null cost:
+on real images, converged poses reached 0.43-0.89x of it, poses with too little overlap
+0.94-1.01x (README, *Quality*).
 """
 
 from __future__ import annotations
@@ -111,7 +115,6 @@ class _Points:
 def _select(view: View, levels: int, cfg: AlignConfig) -> list[_Points]:
     """Each level's pixels of ``view`` with known depth and the strongest gradients, in the world."""
     grey = as_grey(view.image)
-    h, w = grey.shape
     out = []
     for img, K in _pyramid(grey, view.K, levels, cfg.max_width):
         lh, lw = img.shape
@@ -148,9 +151,10 @@ class _Level:
         self.nulls = [float(_huber(p.I - p.I.mean(), cfg.huber).mean()) if len(p.I) else 0.0 for p in points]
         self.null_cost = sum(c * len(p.I) for c, p in zip(self.nulls, points)) / max(self.n, 1)
 
-    def evaluate(self, T_wq: np.ndarray, jacobian: bool):
-        """(cost, inside share) and, with ``jacobian``, (J (M, 6), r (M,), weights (M,)) over
-        the pixels inside the query's image."""
+    def evaluate(self, T_wq: np.ndarray, jacobian: bool
+                 ) -> tuple[float, float, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """(cost, inside share, linearisation): with ``jacobian``, (J (M, 6), r (M,), IRLS
+        weights (M,)) over the pixels inside the query's image, else (or with none inside) None."""
         T_qw = np.linalg.inv(T_wq)
         h, w = self.img.shape
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
@@ -189,12 +193,8 @@ class _Level:
                 Js.append(-a * np.einsum("ni,nij,njk->nk", g, dpi, dX))
                 rs.append(r)
                 ws.append(np.where(np.abs(r) <= k, 1.0, k / np.maximum(np.abs(r), 1e-12)))
-        cost = total / max(self.n, 1)
-        if not jacobian:
-            return cost, inside / max(self.n, 1)
-        if not Js:
-            return cost, inside / max(self.n, 1), None
-        return cost, inside / max(self.n, 1), (np.concatenate(Js), np.concatenate(rs), np.concatenate(ws))
+        lin = (np.concatenate(Js), np.concatenate(rs), np.concatenate(ws)) if Js else None
+        return total / max(self.n, 1), inside / max(self.n, 1), lin
 
 
 def _update(T_wq: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -205,7 +205,10 @@ def _update(T_wq: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return T_wq @ D
 
 
-def _lm(level: _Level, T: np.ndarray, iters: int) -> tuple[np.ndarray, float]:
+def _lm(level: _Level, T: np.ndarray, iters: int) -> np.ndarray:
+    """Levenberg-Marquardt (Marquardt's diagonal damping, IRLS Huber weights) at one level: a step
+    is taken only when it lowers the cost; stops after ``iters`` steps, on a relative decrease
+    under 1e-6, or when no damping finds a lower cost."""
     cost, _, lin = level.evaluate(T, jacobian=True)
     lam = 1e-3
     for _ in range(iters):
@@ -232,7 +235,7 @@ def _lm(level: _Level, T: np.ndarray, iters: int) -> tuple[np.ndarray, float]:
         cost, _, lin = level.evaluate(T, jacobian=True)
         if converged:
             break
-    return T, cost
+    return T
 
 
 def align(views: list[View], image: np.ndarray, K: np.ndarray, T_wc: np.ndarray,
@@ -245,7 +248,7 @@ def align(views: list[View], image: np.ndarray, K: np.ndarray, T_wc: np.ndarray,
     T = np.asarray(T_wc, np.float64)
     start = levels[0].evaluate(T, jacobian=False)[0]
     for level in reversed(levels):
-        T, _ = _lm(level, T, cfg.iters)
-    cost, inside = levels[0].evaluate(T, jacobian=False)
+        T = _lm(level, T, cfg.iters)
+    cost, inside, _ = levels[0].evaluate(T, jacobian=False)
     null = levels[0].null_cost
     return AlignResult(T, cost, start, inside, null, bool(cost <= cfg.accept_ratio * null))
