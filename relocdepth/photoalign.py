@@ -172,25 +172,20 @@ class _Level:
                 continue
             X, z, uv = X[ok], z[ok], np.stack([u[ok], v[ok]], 1)
             Iq, In = _sample(self.img, uv).astype(np.float64), p.I[ok]
-            A = np.stack([Iq, np.ones_like(Iq)], 1)  # brightness: In ~ a Iq + b
-            a, b = np.linalg.lstsq(A, In, rcond=None)[0]
-            a = float(np.clip(a, 0.5, 2.0))
-            b = float(np.mean(In - a * Iq))
+            # brightness In ~ a Iq + b, least squares in closed form (gain kept in [0.5, 2])
+            var = float(np.var(Iq))
+            cov = float(np.mean((Iq - Iq.mean()) * (In - In.mean())))
+            a = float(np.clip(cov / var, 0.5, 2.0)) if var > 1e-12 else 1.0
+            b = float(In.mean() - a * Iq.mean())
             r = In - a * Iq - b
             total += float(_huber(r, k).sum())
             if jacobian:
-                g = np.stack([_sample(self.gx, uv), _sample(self.gy, uv)], 1).astype(np.float64)
-                x, y = X[:, 0], X[:, 1]
-                # d(u, v)/dX_q (N, 2, 3), dX_q/d(v, w) (N, 3, 6)
-                dpi = np.zeros((len(z), 2, 3))
-                dpi[:, 0, 0], dpi[:, 0, 2] = fx / z, -fx * x / z**2
-                dpi[:, 1, 1], dpi[:, 1, 2] = fy / z, -fy * y / z**2
-                dX = np.zeros((len(z), 3, 6))
-                dX[:, :, :3] = -np.eye(3)
-                dX[:, 0, 4], dX[:, 0, 5] = -X[:, 2], X[:, 1]  # X x w = [X]_x w
-                dX[:, 1, 3], dX[:, 1, 5] = X[:, 2], -X[:, 0]
-                dX[:, 2, 3], dX[:, 2, 4] = -X[:, 1], X[:, 0]
-                Js.append(-a * np.einsum("ni,nij,njk->nk", g, dpi, dX))
+                gx, gy = _sample(self.gx, uv).astype(np.float64), _sample(self.gy, uv).astype(np.float64)
+                # G = dI_q/dX_q (the image gradient through the projection); X_q moves by
+                # -v + X_q x w, so dI_q/dv = -G and dI_q/dw = G x X_q (as G . (X_q x w) = w . (G x X_q));
+                # r's Jacobian is -a times that
+                G = np.stack([gx * fx / z, gy * fy / z, -(gx * fx * X[:, 0] + gy * fy * X[:, 1]) / z**2], 1)
+                Js.append(-a * np.concatenate([-G, np.cross(G, X)], 1))
                 rs.append(r)
                 ws.append(np.where(np.abs(r) <= k, 1.0, k / np.maximum(np.abs(r), 1e-12)))
         lin = (np.concatenate(Js), np.concatenate(rs), np.concatenate(ws)) if Js else None
@@ -208,7 +203,7 @@ def _update(T_wq: np.ndarray, delta: np.ndarray) -> np.ndarray:
 def _lm(level: _Level, T: np.ndarray, iters: int) -> np.ndarray:
     """Levenberg-Marquardt (Marquardt's diagonal damping, IRLS Huber weights) at one level: a step
     is taken only when it lowers the cost; stops after ``iters`` steps, on a relative decrease
-    under 1e-6, or when no damping finds a lower cost."""
+    under 1e-4, or when no damping finds a lower cost."""
     cost, _, lin = level.evaluate(T, jacobian=True)
     lam = 1e-3
     for _ in range(iters):
@@ -230,7 +225,7 @@ def _lm(level: _Level, T: np.ndarray, iters: int) -> np.ndarray:
             lam *= 10
         else:
             break
-        converged = cost - new_cost < 1e-6 * cost
+        converged = cost - new_cost < 1e-4 * cost
         T, lam = T_new, max(lam / 10, 1e-6)
         cost, _, lin = level.evaluate(T, jacobian=True)
         if converged:
