@@ -23,9 +23,11 @@ between them. Refinement keeps what it does well and measures the rest:
 5. direct alignment (``align``, :mod:`relocdepth.photoalign`): the pairs' mean and the network's
    pose are each aligned to the neighbours pixel by pixel (their images, the network's depth,
    their map poses), and the aligned pose that explains the neighbours better is kept when it
-   explains them clearly better than their mean brightness does. The pairs reach a few
-   centimetres; the alignment a few millimetres where the views overlap, and a start that the
-   pairs got wrong loses to the network's (README, *Quality*).
+   explains them clearly better than their mean brightness does. Where the views overlap the
+   pairs reach a few centimetres, the alignment millimetres on rendered frames and 1-2 cm on real
+   ones (true depth); a start that the pairs got wrong loses to the network's. The alignment is
+   as good as the map and the depth (README, *Quality*: on the demo it lands on the network's
+   map).
 
 One round: picking the neighbours again from the refined pose and pairing again was measured
 worse on trained networks (README, *Quality*).
