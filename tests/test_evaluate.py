@@ -386,6 +386,16 @@ def test_evaluate_refine_reports_both_and_the_csv_agrees(run: Path, synth_shards
     assert np.all(pairs[kept] < 2) and np.all(pairs[by == "pairs"] >= 2)
     np.testing.assert_allclose(t_ref[kept], t_net[kept], rtol=1e-4, atol=1e-6)
     assert np.median(t_ref) == pytest.approx(refined["test"]["median_t_m"], rel=1e-4)
+    # --no-refine-align: the pairs alone, the same pairs
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(tmp_path / "pairs.json"),
+                 "--refine", "--refine-neighbours", "2", "--no-refine-align")
+    assert res.exit_code == 0, res.output
+    pairs_only = json.loads((tmp_path / "pairs.json").read_text())["pose"]["refined"]
+    assert pairs_only["align"] is False and pairs_only["aligned"] == 0
+    with (tmp_path / "pairs.frames.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["refined_pairs"]) for r in rows] == pairs.tolist()
+    assert [r["refined_by"] for r in rows] == ["pairs" if p >= 2 else "none" for p in pairs]
     # without --refine the report and the CSV stay as they were
     res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(tmp_path / "plain.json"))
     assert res.exit_code == 0, res.output
