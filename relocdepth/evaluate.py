@@ -28,7 +28,7 @@ from relocdepth.errors import UserError
 from relocdepth.trajectory import sim3_to_dict
 
 if TYPE_CHECKING:
-    from relocdepth.refine import RefineConfig
+    from relocdepth.refine import Refined, RefineConfig
 
 log = logging.getLogger(__name__)
 
@@ -270,10 +270,10 @@ def evaluate(
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
     if refine is not None:
-        raw, used, by = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est, refine)
-        pose["refined"], refined_al = refined_report(fit, train_est, train_gt, raw, test_gt, by,
+        results = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est, refine)
+        pose["refined"], refined_al = refined_report(fit, train_est, train_gt, results, test_gt,
                                                      te.sequences, refine, cfg.relative_k)
-        refined = (*EG.pose_errors(refined_al, test_gt), used, by)
+        refined = (*EG.pose_errors(refined_al, test_gt), results)
     report = {
         "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
         "tool_version": _tool_version(), "created": created,
@@ -316,10 +316,10 @@ FRAMES_CSV_REFINED = ("refined_t_err_m", "refined_r_err_deg", "refined_pairs", "
 
 
 def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m: np.ndarray,
-                  refined: tuple[np.ndarray, np.ndarray, np.ndarray, list[str]] | None = None) -> str:
+                  refined: tuple[np.ndarray, np.ndarray, list[Refined]] | None = None) -> str:
     """CSV text: one row per test frame (errors after the Sim(3), the frame's confidence, and the
     distance from its true camera centre to the nearest training frame's); with ``refined``
-    (t_err, r_err, pairs agreeing, what placed it) the refined pose's errors too."""
+    (t_err, r_err, the refinements: pairs agreeing, what placed it) the refined pose's errors too."""
     import csv
     import io
 
@@ -330,37 +330,37 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
     for i, (seq, frame, t, r, c, n) in enumerate(rows):
         row = [seq, frame, f"{t:.6g}", f"{r:.6g}", f"{c:.6g}", f"{n:.6g}"]
         if refined is not None:
-            row += [f"{refined[0][i]:.6g}", f"{refined[1][i]:.6g}", str(int(refined[2][i])), refined[3][i]]
+            row += [f"{refined[0][i]:.6g}", f"{refined[1][i]:.6g}", str(refined[2][i].pairs), refined[2][i].by]
         w.writerow(row)
     return buf.getvalue()
 
 
 def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_est: np.ndarray,
-                      test_est: np.ndarray, refine: RefineConfig) -> tuple[np.ndarray, np.ndarray, list[str]]:
+                      test_est: np.ndarray, refine: RefineConfig) -> list[Refined]:
     """Each test pose refined against its nearest training frames (:mod:`relocdepth.refine`, the
-    network's own poses of the training frames as the map); returns (raw refined poses (N, 4, 4)
-    in the networks' frame, pairs agreeing per frame (N,), what placed each: ``Refined.by``)."""
+    network's own poses of the training frames as the map); each :class:`~relocdepth.refine.Refined`
+    in the networks' frame."""
     from relocdepth.progress import progress_bar
     from relocdepth.refine import Refiner
 
     refiner = Refiner.from_images(predictor, lambda i: ds.read_image(train_recs[i]),
                                   [r.intrinsics for r in train_recs], train_est, refine)
-    out, used, by = np.empty_like(test_est), np.zeros(len(test_recs), int), []
+    out = []
     with progress_bar("evaluate", "frames") as progress:
         task = progress.add_task("refine test", total=len(test_recs))
-        for i, rec in enumerate(test_recs):
-            r = refiner.refine(ds.read_image(rec), rec.intrinsics, test_est[i])
-            out[i], used[i] = r.T_wc, r.pairs
-            by.append(r.by)
+        for rec, T in zip(test_recs, test_est, strict=True):
+            out.append(refiner.refine(ds.read_image(rec), rec.intrinsics, T))
             progress.advance(task, 1)
-    return out, used, by
+    return out
 
 
-def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, refined: np.ndarray,
-                   test_gt: np.ndarray, by: list[str], test_sequences: list[str], refine: RefineConfig,
+def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, results: list[Refined],
+                   test_gt: np.ndarray, test_sequences: list[str], refine: RefineConfig,
                    relative_k: int = 5) -> tuple[dict, np.ndarray]:
     """The refined test poses under the same alignment as the network's (fitted on the
     network's training poses); returns (report section ``pose.refined``, aligned poses)."""
+    refined = np.stack([r.T_wc for r in results])
+    by = [r.by for r in results]
     al = EG.apply_sim3(fit.scale, fit.R, fit.t, refined)
     t_err, r_err = EG.pose_errors(al, test_gt)
     rot_only = EG.rotation_only_errors(train_est[:, :3, :3], train_gt[:, :3, :3], refined[:, :3, :3],

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from relocdepth.camera import scale_K
 from relocdepth.twoview import as_grey
 
 
@@ -66,14 +67,6 @@ class AlignResult:
     accepted: bool  # cost <= accept_ratio * null_cost
 
 
-def _scale_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """K after resizing the image by (sx, sy) (pixel centres at integers, as Intrinsics.scaled)."""
-    K = np.asarray(K, np.float64).copy()
-    K[0, 0], K[1, 1] = K[0, 0] * sx, K[1, 1] * sy
-    K[0, 2], K[1, 2] = (K[0, 2] + 0.5) * sx - 0.5, (K[1, 2] + 0.5) * sy - 0.5
-    return K
-
-
 def _pyramid(grey: np.ndarray, K: np.ndarray, levels: int, max_width: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """(image float32 in [0, 1], K) from the finest level (at most ``max_width`` wide) to the
     coarsest."""
@@ -81,13 +74,13 @@ def _pyramid(grey: np.ndarray, K: np.ndarray, levels: int, max_width: int) -> li
     s = min(1.0, max_width / w)
     fw, fh = max(1, round(w * s)), max(1, round(h * s))
     img = grey if (fw, fh) == (w, h) else cv2.resize(grey, (fw, fh), interpolation=cv2.INTER_AREA)
-    out = [(img.astype(np.float32) / 255.0, _scale_K(K, fw / w, fh / h))]
+    out = [(img.astype(np.float32) / 255.0, scale_K(K, fw / w, fh / h))]
     for _ in range(levels - 1):
         prev, Kp = out[-1]
         if min(prev.shape) < 16:
             break
         nxt = cv2.pyrDown(prev)
-        out.append((nxt, _scale_K(Kp, nxt.shape[1] / prev.shape[1], nxt.shape[0] / prev.shape[0])))
+        out.append((nxt, scale_K(Kp, nxt.shape[1] / prev.shape[1], nxt.shape[0] / prev.shape[0])))
     return out
 
 
@@ -233,17 +226,27 @@ def _lm(level: _Level, T: np.ndarray, iters: int) -> np.ndarray:
     return T
 
 
-def align(views: list[View], image: np.ndarray, K: np.ndarray, T_wc: np.ndarray,
-          cfg: AlignConfig = AlignConfig()) -> AlignResult:
+def align_from(views: list[View], image: np.ndarray, K: np.ndarray, starts: list[np.ndarray],
+               cfg: AlignConfig = AlignConfig()) -> list[AlignResult]:
     """The query's pose (``image`` RGB/grey uint8 with intrinsics ``K``) aligned to ``views``
-    from ``T_wc``, coarse to fine."""
+    from each of ``starts`` (``T_wc (4, 4)``), coarse to fine; the pyramids and the views'
+    pixels are built once for all starts."""
     query = _pyramid(as_grey(image), K, cfg.levels, cfg.max_width)
     selected = [_select(v, len(query), cfg) for v in views]
     levels = [_Level([s[i] for s in selected if i < len(s)], *query[i], cfg) for i in range(len(query))]
-    T = np.asarray(T_wc, np.float64)
-    start = levels[0].evaluate(T, jacobian=False)[0]
-    for level in reversed(levels):
-        T = _lm(level, T, cfg.iters)
-    cost, inside, _ = levels[0].evaluate(T, jacobian=False)
     null = levels[0].null_cost
-    return AlignResult(T, cost, start, inside, null, bool(cost <= cfg.accept_ratio * null))
+    out = []
+    for T_wc in starts:
+        T = np.asarray(T_wc, np.float64)
+        start = levels[0].evaluate(T, jacobian=False)[0]
+        for level in reversed(levels):
+            T = _lm(level, T, cfg.iters)
+        cost, inside, _ = levels[0].evaluate(T, jacobian=False)
+        out.append(AlignResult(T, cost, start, inside, null, bool(cost <= cfg.accept_ratio * null)))
+    return out
+
+
+def align(views: list[View], image: np.ndarray, K: np.ndarray, T_wc: np.ndarray,
+          cfg: AlignConfig = AlignConfig()) -> AlignResult:
+    """:func:`align_from` one start."""
+    return align_from(views, image, K, [T_wc], cfg)[0]

@@ -59,7 +59,7 @@ from relocdepth.camera import Intrinsics
 from relocdepth.errors import UserError
 from relocdepth.eval_geometry import rotation_angle_deg
 from relocdepth.fileio import atomic_write
-from relocdepth.photoalign import AlignConfig, View, align
+from relocdepth.photoalign import AlignConfig, View, align_from
 from relocdepth.predictor import Predictor, resize_to
 from relocdepth.vo import VOConfig, pair_pose, robust_mean_transform, wide_pair_pose
 
@@ -180,7 +180,7 @@ def refine_pose(ref: Reference, image: np.ndarray, intrinsics: Intrinsics, T_wc:
     if cfg.align:
         K_q = intrinsics.scaled(image.shape[1], image.shape[0]).K()
         starts = [T_net] + ([out.T_wc] if out.by == "pairs" else [])
-        best = min((align(views, image, K_q, T, cfg.photometric) for T in starts), key=lambda r: r.cost)
+        best = min(align_from(views, image, K_q, starts, cfg.photometric), key=lambda r: r.cost)
         if best.accepted:
             out.T_wc, out.by = best.T_wc, "aligned"
     return out
