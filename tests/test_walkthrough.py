@@ -57,3 +57,18 @@ def test_blocks_alternate_train_and_test_sequences_with_their_own_poses(tmp_path
     np.testing.assert_allclose(x["seq-03"], [0.4, 0.5, 0.6, 0.7])
     tail = walkthrough.lay_out(tmp_path / "walk", tmp_path / "tail", test=4)
     assert tail["test_sequences"] == 1 and read_splits(tmp_path / "tail") == {"seq-01": "train", "seq-02": "test"}
+
+
+def test_every_nth_frame_tests_between_training_frames(tmp_path):
+    train, test = walkthrough.interleaved(9, 3)
+    assert test == [1, 4, 7] and train == [0, 2, 3, 5, 6, 8]
+    with pytest.raises(SystemExit, match="--every"):
+        walkthrough.interleaved(9, 1)
+    _walk(tmp_path / "walk", 10)
+    counts = walkthrough.lay_out(tmp_path / "walk", tmp_path / "scene", test=4, blocks=2, every=2)
+    assert counts == {"train": 5, "test": 5, "train_sequences": 1, "test_sequences": 1}
+    assert read_splits(tmp_path / "scene") == {"seq-01": "train", "seq-02": "test"}
+    x = {seq: [np.loadtxt(p)[0, 3] for p in sorted((tmp_path / "scene" / seq).glob("*.pose.txt"))]
+         for seq in ("seq-01", "seq-02")}
+    np.testing.assert_allclose(x["seq-01"], [0.0, 0.2, 0.4, 0.6, 0.8])
+    np.testing.assert_allclose(x["seq-02"], [0.1, 0.3, 0.5, 0.7, 0.9])

@@ -129,7 +129,8 @@ def run_to_end(args: list[str], threads: int, logfile: Path) -> None:
         raise RuntimeError(f"reloc {' '.join(args[:1])} failed (exit {rc}); see {logfile}")
 
 
-def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: int = 30, walk_blocks: int = 1) -> Path:
+def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: int = 30, walk_blocks: int = 1,
+                 walk_every: int = 0) -> Path:
     """Render the demo scene (or lay out the walk-through) and ingest it once; returns the shards."""
     from relocdepth.ingest.run import IngestConfig, ingest
 
@@ -146,9 +147,10 @@ def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: i
         sys.path.insert(0, str(Path(__file__).parent))
         from walkthrough import lay_out
 
-        log.info("laying out %s as a 7-Scenes scene in %s (%d test frames in %d block(s))", walk, scene,
-                 walk_test, walk_blocks)
-        lay_out(walk, scene, walk_test, walk_blocks)
+        log.info("laying out %s as a 7-Scenes scene in %s (%s)", walk, scene,
+                 f"every {walk_every}th frame a test frame" if walk_every else
+                 f"{walk_test} test frames in {walk_blocks} block(s)")
+        lay_out(walk, scene, walk_test, walk_blocks, walk_every)
     else:
         log.info("rendering the demo scene into %s", scene)
         generate_scene(scene, SynthConfig(**SCENE))
@@ -339,6 +341,9 @@ def main() -> None:
                     help="with --data: N test frames (the walk's last N, or --walk-blocks blocks of them)")
     ap.add_argument("--walk-blocks", type=int, default=1,
                     help="with --data: the test frames in B blocks spread inside the walk (default 1: its end)")
+    ap.add_argument("--walk-every", type=int, default=0,
+                    help="with --data: every Nth frame a test frame, one training and one test sequence along "
+                         "the whole walk (--walk-test and --walk-blocks unused)")
     ap.add_argument("--size", default=None, help=f"training size WxH (default {SIZE}; 192x128 suits 3:2 walk-throughs)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
@@ -348,7 +353,7 @@ def main() -> None:
     if unknown or not names or a.budget_min <= 0 or a.threads < 1 or a.parallel < 1:
         ap.error(f"rows must be among {', '.join(RECIPES)} (got {unknown or names}); budget and threads > 0")
     a.out.mkdir(parents=True, exist_ok=True)
-    shards = prepare_data(a.out, a.threads, a.data, a.walk_test, a.walk_blocks)
+    shards = prepare_data(a.out, a.threads, a.data, a.walk_test, a.walk_blocks, a.walk_every)
     rows = run_rows(names, shards, a.out, a.budget_min, a.threads, a.redo, size, a.data is not None, a.parallel)
     ref = rows[names[0]]["references"]
     for r in rows.values():
@@ -356,7 +361,8 @@ def main() -> None:
     md = table(rows, ref, size)
     cmd = "python benchmarks/quality/run.py " + " ".join(sys.argv[1:])
     where = "last" if a.walk_blocks == 1 else f"in {a.walk_blocks} blocks inside the walk:"
-    data = (f"walk-through {a.data}, {where} {a.walk_test} frames test" if a.data is not None
+    split = f"every {a.walk_every}th frame test" if a.walk_every else f"{where} {a.walk_test} frames test"
+    data = (f"walk-through {a.data}, {split}" if a.data is not None
             else "demo scene: synth seed 0, 150 frames x 3 sequences")
     (a.out / "quality.md").write_text(
         f"`{cmd.strip()}` ({data}; trained at {size}; {a.threads} torch thread(s), {a.parallel} row(s) at once; "

@@ -6,10 +6,15 @@ test (seq-02): the test frames are later along the same walk, beyond every train
 depth and pose must extrapolate to parts of the place never trained on. With ``--blocks B`` the
 test frames are B blocks spread evenly inside the walk, each between training frames (train and
 test sequences alternate: seq-01 train, seq-02 test, ...), the way 7-Scenes' test sequences
-revisit the places its training sequences saw.
+revisit the places its training sequences saw. With ``--every N`` every Nth frame (from the
+second) is a test frame: one training sequence and one test sequence, both along the whole walk,
+each test frame between two training ones. Only this layout has every test place seen by training
+frames: the blocks' training stretches of a walk barely see each other (on hololens-office not
+one of their links agrees, with the true poses and depth too; README, Quality).
 
     python benchmarks/quality/walkthrough.py ../shared/data/hololens-office /tmp/holo-scene --test 30
     python benchmarks/quality/walkthrough.py ../shared/data/hololens-office /tmp/holo-inside --blocks 3
+    python benchmarks/quality/walkthrough.py ../shared/data/hololens-office /tmp/holo-every --every 2
     reloc ingest /tmp/holo-scene -o /tmp/holo-shards
 """
 
@@ -45,9 +50,20 @@ def test_ranges(n: int, test: int, blocks: int = 1) -> list[tuple[int, int]]:
     return ranges
 
 
-def lay_out(src: Path, out: Path, test: int, blocks: int = 1) -> dict[str, int]:
+def interleaved(n: int, every: int) -> tuple[list[int], list[int]]:
+    """Frame indices (train, test) of ``n`` with every ``every``-th frame, from the second, a test
+    frame: each test frame has training frames on both sides (the last one too, when it is not
+    the walk's last frame)."""
+    if every < 2 or n < 2 * every:
+        raise SystemExit(f"--every must be >= 2 and leave two test frames in a walk of {n} (got {every})")
+    test = list(range(1, n, every))
+    return [i for i in range(n) if i % every != 1], test
+
+
+def lay_out(src: Path, out: Path, test: int, blocks: int = 1, every: int = 0) -> dict[str, int]:
     """Write ``out`` (sequences in time order, train and test; split files, intrinsics.yaml);
-    returns frame and sequence counts."""
+    returns frame and sequence counts. ``every`` > 0: one interleaved training and test sequence
+    (:func:`interleaved`; ``test`` and ``blocks`` unused)."""
     import cv2
 
     images = sorted((src / "images").glob("*.png"))
@@ -57,16 +73,20 @@ def lay_out(src: Path, out: Path, test: int, blocks: int = 1) -> dict[str, int]:
     if not (len(images) == len(depths) == len(poses)):
         raise SystemExit(f"{src}: {len(images)} images, {len(depths)} depth maps, {len(poses)} poses")
     n = len(images)
-    tests = test_ranges(n, test, blocks)
-    cuts = sorted({0, n, *[x for r in tests for x in r]})
+    if every:
+        sequences = list(zip(interleaved(n, every), (False, True)))
+    else:
+        tests = test_ranges(n, test, blocks)
+        cuts = sorted({0, n, *[x for r in tests for x in r]})
+        sequences = [(list(range(lo, hi)), (lo, hi) in tests) for lo, hi in itertools.pairwise(cuts)]
     h, w = cv2.imread(str(images[0])).shape[:2]
     out.mkdir(parents=True, exist_ok=False)
     split: dict[str, list[str]] = {"train": [], "test": []}
-    for number, (lo, hi) in enumerate(itertools.pairwise(cuts), start=1):
+    for number, (frames, is_test) in enumerate(sequences, start=1):
         d = out / f"seq-{number:02d}"
         d.mkdir()
-        split["test" if (lo, hi) in tests else "train"].append(f"sequence{number}")
-        for j, i in enumerate(range(lo, hi)):
+        split["test" if is_test else "train"].append(f"sequence{number}")
+        for j, i in enumerate(frames):
             stem = d / f"frame-{j:06d}"
             shutil.copyfile(images[i], f"{stem}.color.png")
             shutil.copyfile(depths[i], f"{stem}.depth.png")
@@ -76,7 +96,8 @@ def lay_out(src: Path, out: Path, test: int, blocks: int = 1) -> dict[str, int]:
     (out / "intrinsics.yaml").write_text(yaml.safe_dump({
         "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
         "width": int(w), "height": int(h)}))
-    return {"train": n - test, "test": test, "train_sequences": len(split["train"]),
+    n_test = sum(len(f) for f, is_test in sequences if is_test)
+    return {"train": n - n_test, "test": n_test, "train_sequences": len(split["train"]),
             "test_sequences": len(split["test"])}
 
 
@@ -87,8 +108,11 @@ def main() -> None:
     ap.add_argument("--test", type=int, default=30, help="number of test frames (default: the last 30)")
     ap.add_argument("--blocks", type=int, default=1,
                     help="test frames in B blocks spread inside the walk (default 1: the walk's end)")
+    ap.add_argument("--every", type=int, default=0,
+                    help="every Nth frame (from the second) a test frame: one training and one test sequence "
+                         "along the whole walk (--test and --blocks unused)")
     args = ap.parse_args()
-    print(lay_out(args.src, args.out, args.test, args.blocks))
+    print(lay_out(args.src, args.out, args.test, args.blocks, args.every))
 
 
 if __name__ == "__main__":
