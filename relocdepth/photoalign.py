@@ -64,7 +64,7 @@ class AlignResult:
     start_cost: float  # the same at the start pose
     inside: float  # share of the selected pixels inside the query's image at the end
     null_cost: float  # the cost of a query that explains nothing but each view's mean brightness
-    accepted: bool  # cost <= accept_ratio * null_cost
+    accepted: bool  # cost <= accept_ratio * null_cost (never when null_cost is 0: nothing to explain)
 
 
 def _pyramid(grey: np.ndarray, K: np.ndarray, levels: int, max_width: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -242,7 +242,7 @@ def align_from(views: list[View], image: np.ndarray, K: np.ndarray, starts: list
         for level in reversed(levels):
             T = _lm(level, T, cfg.iters)
         cost, inside, _ = levels[0].evaluate(T, jacobian=False)
-        out.append(AlignResult(T, cost, start, inside, null, bool(cost <= cfg.accept_ratio * null)))
+        out.append(AlignResult(T, cost, start, inside, null, bool(null > 0 and cost <= cfg.accept_ratio * null)))
     return out
 
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -204,6 +204,8 @@ def main() -> None:
     ap.add_argument("--link-matcher", choices=LINK_MATCHERS, default=VOConfig.link_matcher,
                     help="registration links: SIFT matches (wide baselines) or the bootstrap's KLT")
     ap.add_argument("--query-every", type=int, default=VOConfig.query_every)
+    ap.add_argument("--align", action="store_true",
+                    help="also refine each sequence's odometry by direct alignment (rows marked 'aligned')")
     ap.add_argument("--json", type=Path, help="also write the figures here")
     a = ap.parse_args()
     size = tuple(int(v) for v in a.size.lower().split("x")) if a.size else None
@@ -213,10 +215,14 @@ def main() -> None:
     print(f"{a.data}: {', '.join(f'{s.name} ({len(s.images)})' for s in seqs)} at "
           f"{seqs[0].intrinsics.width}x{seqs[0].intrinsics.height}; {cfg}")
     rows = {}
+    sources = [("ground truth", [s.depth_gt for s in seqs], {})]
     if a.checkpoint:
         depths, per_frame = network_depth(a.checkpoint, seqs)
-        rows["network"] = run(seqs, depths, cfg, a.k) | {"depth_s_per_frame": per_frame}
-    rows["ground truth"] = run(seqs, [s.depth_gt for s in seqs], cfg, a.k)
+        sources.insert(0, ("network", depths, {"depth_s_per_frame": per_frame}))
+    for label, depths, extra in sources:
+        rows[label] = run(seqs, depths, cfg, a.k) | extra
+        if a.align:
+            rows[f"{label}, aligned"] = run(seqs, depths, replace(cfg, align=True), a.k) | extra
     print_table(rows)
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
