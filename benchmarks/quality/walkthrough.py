@@ -9,8 +9,8 @@ test sequences alternate: seq-01 train, seq-02 test, ...), the way 7-Scenes' tes
 revisit the places its training sequences saw. With ``--every N`` every Nth frame (from the
 second) is a test frame: one training sequence and one test sequence, both along the whole walk,
 each test frame between two training ones. Only this layout has every test place seen by training
-frames: the blocks' training stretches of a walk barely see each other (on hololens-office not
-one of their links agrees, with the true poses and depth too; README, Quality).
+frames: the blocks' training stretches of a walk barely see each other (on hololens-office no two
+of their links agree, with the true poses and depth too; README, Quality).
 
     python benchmarks/quality/walkthrough.py ../shared/data/hololens-office /tmp/holo-scene --test 30
     python benchmarks/quality/walkthrough.py ../shared/data/hololens-office /tmp/holo-inside --blocks 3
