@@ -48,6 +48,9 @@ RECIPES: dict[str, dict[str, Any]] = {
     # `cpu-bootstrap` + absolute anchors for the DSC network from the training frames' own odometry,
     # built at step 150 and rebuilt every 250 steps (README, Training; Quality trial 14: a better
     # absolute pose, a steadier relative one up to ~600 steps and a worse one after, the same depth).
+    # On real images of one training sequence (the walk-through, every 2nd frame a test frame) it
+    # reached rung 2 within 30-34 minutes on two seeds, where the bootstrap alone stayed at rung 0
+    # (README, Quality trial 25).
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
     # into one world (built once its relative poses are right, step 600, then every 300 steps).
