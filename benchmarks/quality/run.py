@@ -129,6 +129,13 @@ def run_to_end(args: list[str], threads: int, logfile: Path) -> None:
         raise RuntimeError(f"reloc {' '.join(args[:1])} failed (exit {rc}); see {logfile}")
 
 
+def walk_split(test: int, blocks: int, every: int) -> str:
+    """Which frames of a walk-through test, in words (the log and quality.md)."""
+    if every:
+        return f"one frame in {every} a test frame"
+    return f"the last {test} frames test" if blocks == 1 else f"{test} test frames in {blocks} blocks inside the walk"
+
+
 def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: int = 30, walk_blocks: int = 1,
                  walk_every: int = 0) -> Path:
     """Render the demo scene (or lay out the walk-through) and ingest it once; returns the shards."""
@@ -148,8 +155,7 @@ def prepare_data(out: Path, threads: int, walk: Path | None = None, walk_test: i
         from walkthrough import lay_out
 
         log.info("laying out %s as a 7-Scenes scene in %s (%s)", walk, scene,
-                 f"every {walk_every}th frame a test frame" if walk_every else
-                 f"{walk_test} test frames in {walk_blocks} block(s)")
+                 walk_split(walk_test, walk_blocks, walk_every))
         lay_out(walk, scene, walk_test, walk_blocks, walk_every)
     else:
         log.info("rendering the demo scene into %s", scene)
@@ -350,6 +356,8 @@ def main() -> None:
     names = [r.strip() for r in a.rows.split(",") if r.strip()]
     unknown = [r for r in names if r not in RECIPES]
     size = a.size or SIZE
+    if a.walk_every < 0 or a.walk_every == 1:
+        ap.error(f"--walk-every must be 0 (off) or >= 2, not {a.walk_every}")
     if unknown or not names or a.budget_min <= 0 or a.threads < 1 or a.parallel < 1:
         ap.error(f"rows must be among {', '.join(RECIPES)} (got {unknown or names}); budget and threads > 0")
     a.out.mkdir(parents=True, exist_ok=True)
@@ -360,9 +368,7 @@ def main() -> None:
         r["rung"], r["next_rung_blocked_by"] = rung(r["metrics"], ref)
     md = table(rows, ref, size)
     cmd = "python benchmarks/quality/run.py " + " ".join(sys.argv[1:])
-    where = "last" if a.walk_blocks == 1 else f"in {a.walk_blocks} blocks inside the walk:"
-    split = f"every {a.walk_every}th frame test" if a.walk_every else f"{where} {a.walk_test} frames test"
-    data = (f"walk-through {a.data}, {split}" if a.data is not None
+    data = (f"walk-through {a.data}, {walk_split(a.walk_test, a.walk_blocks, a.walk_every)}" if a.data is not None
             else "demo scene: synth seed 0, 150 frames x 3 sequences")
     (a.out / "quality.md").write_text(
         f"`{cmd.strip()}` ({data}; trained at {size}; {a.threads} torch thread(s), {a.parallel} row(s) at once; "
