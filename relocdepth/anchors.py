@@ -70,6 +70,9 @@ class Anchors:
     # the sequences (1 = the second) whose links agree too little (MIN_LINK_INLIERS) to place them in
     # the first one's world; such anchors are not to be used
     unlinked: list[int] = field(default_factory=list)
+    # vo anchors refined by direct alignment (VOConfig.align): the frames whose alignment to the
+    # previous frame was trusted, out of the frames after each sequence's first (None: not aligned)
+    aligned: int | None = None
 
 
 def unlinked_sequences(regs: list[Any]) -> list[int]:
@@ -122,13 +125,15 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
         images.append([p[0] for p in pairs])
         Ks.append(pairs[0][1].K())
     depths = [depth(ix, im) for ix, im in zip(seqs, images)]
-    w = world_trajectory(images, Ks, [d.__getitem__ for d in depths], cfg or VOConfig())
+    cfg = cfg or VOConfig()
+    w = world_trajectory(images, Ks, [d.__getitem__ for d in depths], cfg)
     T = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
     for ix, T_seq in zip(seqs, w.world):
         T[ix] = T_seq.astype(np.float32)
     unlinked = unlinked_sequences(w.regs)
     return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
-                   [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked)
+                   [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked,
+                   aligned=w.aligned if cfg.align else None)
 
 
 # World poses (N, 4, 4) and depth maps (H, W) of frames, from their images at the training size and

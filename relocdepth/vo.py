@@ -300,14 +300,16 @@ def align_chain(images: Sequence[np.ndarray], K: np.ndarray, depth: DepthSource,
 @dataclass
 class World:
     """Every sequence's odometry (:func:`chain`), the registrations of sequences 2.. into the first
-    one's world (:func:`register`), each sequence's poses in that world ``(N_i, 4, 4)``, and the CPU
-    seconds of odometry and of registration."""
+    one's world (:func:`register`), each sequence's poses in that world ``(N_i, 4, 4)``, the CPU
+    seconds of odometry and of registration, and how many frame-to-frame alignments were trusted
+    (``VOConfig.align``; 0 without it)."""
 
     trajs: list[Trajectory]
     regs: list[Registration]
     world: list[np.ndarray]
     vo_s: float
     reg_s: float
+    aligned: int = 0
 
 
 def world_trajectory(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndarray],
@@ -319,12 +321,14 @@ def world_trajectory(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndar
         raise ValueError("world_trajectory needs images, K and depth for each of >= 1 sequences")
     t0 = time.process_time()
     trajs = [chain(im, k, d, cfg) for im, k, d in zip(images, K, depth)]
+    aligned = 0
     if cfg.align:
-        trajs = [replace(tr, T_wc=align_chain(im, k, d, tr.T_wc)[0])
-                 for tr, im, k, d in zip(trajs, images, K, depth)]
+        refined = [align_chain(im, k, d, tr.T_wc) for tr, im, k, d in zip(trajs, images, K, depth)]
+        trajs = [replace(tr, T_wc=T) for tr, (T, _) in zip(trajs, refined)]
+        aligned = sum(n for _, n in refined)
     vo_s, t0 = time.process_time() - t0, time.process_time()
     regs, world = join_sequences(images, K, [tr.T_wc for tr in trajs], depth, cfg)
-    return World(trajs, regs, world, vo_s, time.process_time() - t0)
+    return World(trajs, regs, world, vo_s, time.process_time() - t0, aligned)
 
 
 def join_sequences(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndarray], T_wc: Sequence[np.ndarray],

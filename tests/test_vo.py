@@ -190,6 +190,24 @@ def test_align_chain_with_true_depth_is_more_precise_than_the_pairs(rendered: di
     assert rms(err) < 0.5 * rms(err_pairs) and rms(err) < 0.01, (rms(err), rms(err_pairs))
 
 
+def test_world_trajectory_aligns_each_sequence_when_asked(rendered: dict) -> None:
+    """``VOConfig(align=True)``: every sequence's odometry is refined frame to frame before the
+    sequences are joined (the first sequence, the world, is then its refined chain), and the world
+    counts the trusted alignments."""
+    from relocdepth.vo import VOConfig, world_trajectory
+
+    K = INTR.K()
+    args = ([rendered["img_a"], rendered["img_b"]], [K, K], [rendered["depth_a"].__getitem__,
+                                                            rendered["depth_b"].__getitem__])
+    plain, aligned = world_trajectory(*args), world_trajectory(*args, VOConfig(align=True))
+    assert plain.aligned == 0 and aligned.aligned == (20 - 1) + (8 - 1)
+    refined, _ = align_chain(rendered["img_a"], K, rendered["depth_a"].__getitem__, plain.trajs[0].T_wc)
+    assert np.allclose(aligned.world[0], refined)
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
+    errs = [rms(_aligned_centres(w.world[0], rendered["T_a"])[1]) for w in (plain, aligned)]
+    assert errs[1] < 0.5 * errs[0], errs
+
+
 def test_align_chain_keeps_the_odometry_where_no_alignment_is_trusted(rendered: dict) -> None:
     blank = [np.full_like(im, 128) for im in rendered["img_a"][:5]]
     traj = chain(rendered["img_a"][:5], INTR.K(), rendered["depth_a"].__getitem__)
