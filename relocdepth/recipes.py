@@ -50,7 +50,9 @@ RECIPES: dict[str, dict[str, Any]] = {
     # absolute pose, a steadier relative one up to ~600 steps and a worse one after, the same depth).
     # On real images of one training sequence (the walk-through, every 2nd frame a test frame) it
     # reached rung 2 within 30-34 minutes on two seeds, where the bootstrap alone stayed at rung 0
-    # (README, Quality trial 25).
+    # (README, Quality trial 25). With --anchor-align-step 400 its anchors were 22-26 % closer there
+    # and the relative pose better at 9 of 10 checkpoints (one seed; trial 26): not yet measured on
+    # the demo scene, so not part of the recipe.
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
     # into one world (built once its relative poses are right, step 600, then every 300 steps).

@@ -68,7 +68,7 @@ class VOConfig:
     # the depth's: on the real walk-through (60 frames 20 cm apart, 192x128) ATE 0.237 -> 0.027 m
     # with the true depth, 0.250 -> 0.194 m with a depth network at AbsRel 0.18 and 0.281 -> 0.362
     # at AbsRel 0.25 (README, Quality: trial 25). Off by default: the anchors are built from the
-    # network's depth early in training.
+    # network's depth early in training (TrainConfig.anchor_align_step turns it on from a step).
     align: bool = False
 
 
