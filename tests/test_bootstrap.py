@@ -131,11 +131,11 @@ def test_warps_switch_between_bootstrap_and_dsc_poses() -> None:
     _driven, d_parts, d_diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(True, 1.0, wrong))
     fading, f_parts, f_diag = triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.5, wrong))
     assert d_diag["boot_warps"] == 1.0 and f_diag["boot_warps"] == 0.0
-    assert float(d_parts["L_p"]) != pytest.approx(float(p_parts["L_p"]), rel=1e-3)  # other warps
-    assert float(f_parts["L_p"]) == pytest.approx(float(p_parts["L_p"]), rel=1e-6)  # DSC warps again
+    assert float(d_parts["L_p"].detach()) != pytest.approx(float(p_parts["L_p"].detach()), rel=1e-3)  # other warps
+    assert float(f_parts["L_p"].detach()) == pytest.approx(float(p_parts["L_p"].detach()), rel=1e-6)  # DSC warps again
     # The consistency term is added with its weight.
-    assert float(fading) == pytest.approx(float(paper) + 0.5 * float(f_parts["L_boot"]), rel=1e-5)
-    assert float(f_parts["L_boot"]) > 0.1  # 30 deg / 0.5 units from the DSC's near-identity poses
+    assert float(fading.detach()) == pytest.approx(float(paper.detach()) + 0.5 * float(f_parts["L_boot"].detach()), rel=1e-5)
+    assert float(f_parts["L_boot"].detach()) > 0.1  # 30 deg / 0.5 units from the DSC's near-identity poses
 
 
 def test_bootstrap_schedule() -> None:
