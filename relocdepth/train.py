@@ -695,8 +695,8 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size,
                             VOConfig(align=align))
-        how = f"odometry of {len(a.T_wc)} frames ({a.keyframes} keyframes, {a.lost} lost"
-        how += f", {a.aligned} frames aligned)" if a.aligned is not None else ")"
+        aligned = "" if a.aligned is None else f", {a.aligned} frames aligned"
+        how = f"odometry of {len(a.T_wc)} frames ({a.keyframes} keyframes, {a.lost} lost{aligned})"
     if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
         weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
         log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
