@@ -29,7 +29,11 @@ class TrackConfig:
     quality_level: float = 0.01  # relative corner strength (OpenCV samples use 0.01-0.3)
     min_distance: float = 4.0  # px between corners: spreads tracks over the image
     win_size: int = 15  # LK window (px)
-    max_level: int = 3  # pyramid levels: 15 px window x 2^3 covers ~100 px motion
+    # Pyramid levels: each one doubles the motion the window can follow (~100 px with 3). OpenCV
+    # stops where a level would be no larger than the window, so 5 is the same as 3 up to 320x240
+    # and is 4 from 384x256 to 640x480, where 3 lost the pairs that turn fast (the real walk-through
+    # at 540x360 turns up to 12 deg, ~110 px, between frames).
+    max_level: int = 5
     fb_max_px: float = 1.0  # forward-backward disagreement above this drops a track
 
 

@@ -144,3 +144,39 @@ def test_bootstrap_pair_pose_and_metric_depth_with_two_cameras() -> None:
     img_c, _ = render(scene, T_c, INTR)
     T_full, _, ok_full = bootstrap_pair(img_a, img_c, INTR.K(), INTR.K())
     assert ok_full and np.linalg.norm(T_full[:3, 3]) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_tracks_follow_a_fast_turn_at_640x480() -> None:
+    """A 10 deg turn at 640x480 moves the image ~120 px: the default pyramid follows it (each
+    track lands where the rendered depth and the true pose put it), three levels lose it, and the
+    bootstrap's pair is measured."""
+    from relocdepth.twoview import TrackConfig, as_grey, bootstrap_pair, detect_corners, track_points
+
+    K = Intrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
+    cfg = SynthConfig(seed=0, frames=2, width=K.width, height=K.height)
+    scene = build_scene(cfg.seed, cfg)
+    T_a = camera_paths(cfg)["seq-01"][0]
+    T_b = T_a.copy()
+    T_b[:3, 3] += np.array([0.08, 0.03, 0.02])
+    T_b[:3, :3] = T_a[:3, :3] @ cv2.Rodrigues(np.radians([1.0, 10.0, 0.0]))[0]
+    img_a, depth_a = render(scene, T_a, K)
+    img_b, _ = render(scene, T_b, K)
+    T_ba = relative_pose(torch.from_numpy(T_a)[None], torch.from_numpy(T_b)[None])[0].numpy()
+
+    def track_errors(track: TrackConfig) -> tuple[np.ndarray, np.ndarray]:
+        """Per track: the distance (px) from where the truth puts it, and how far it moved."""
+        grey_a = as_grey(img_a)
+        pa, pb = track_points(grey_a, as_grey(img_b), detect_corners(grey_a, track), track)
+        x, y = np.round(pa).astype(int).T
+        X = np.c_[(pa - K.K()[:2, 2]) / K.fx, np.ones(len(pa))] * depth_a[y, x][:, None]
+        Xb = X @ T_ba[:3, :3].T + T_ba[:3, 3]
+        truth = Xb[:, :2] / Xb[:, 2:] * K.fx + K.K()[:2, 2]
+        return np.linalg.norm(pb - truth, axis=1), np.linalg.norm(truth - pa, axis=1)
+
+    err, moved = track_errors(TrackConfig())
+    assert np.median(moved) > 100  # the motion is beyond three levels' reach: the test can fail
+    assert (err < 1.0).sum() >= 30 and np.median(err) < 1.0, (len(err), np.median(err))
+    err3, _ = track_errors(TrackConfig(max_level=3))
+    assert (err3 < 1.0).sum() < 10
+    T, _, ok = bootstrap_pair(img_a, img_b, K.K(), K.K())
+    assert ok and rotation_angle_deg(T[:3, :3].T @ T_ba[:3, :3]) < 3.0
