@@ -184,6 +184,13 @@ BOOTSTRAP_POINTS = 64
 # apart, against ground truth): median direction error 61-69 deg below 0.7 px, 21 deg at 0.7-1 px,
 # 5.5 deg at 1-1.5 px, 2-4 deg above; the rotation stays within 0.1-0.4 deg throughout.
 BOOTSTRAP_MIN_PARALLAX_PX = 1.0
+# recoverPose counts a point only when it triangulates nearer than a distance in baselines,
+# 50 by default: a parallax of f / 50 px, ~2 px at 128x96 but ~10 px at 640x480. A pair whose
+# points are nearly all farther and which moves too much for a rotation alone (a 1 cm step at 1.2 m
+# is ~4 px at 640x480) is counted again up to this distance, where the parallax test
+# (BOOTSTRAP_MIN_PARALLAX_PX) decides: f / 1000 px is under a pixel at any size here. The demo
+# rendered at 640x480, pairs 1 / 3 frames apart: 15 / 45 of 60 worked with 50 alone, 60 / 60 so.
+BOOTSTRAP_FAR_BASELINES = 1000.0
 
 
 def bootstrap_pair(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
@@ -229,11 +236,18 @@ def bootstrap_pair(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_
     E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.999, ransac_px / float(K_a[0, 0]))
     if E is None or E.shape[0] < 3:
         return rotation_only()
-    n, R, t, mask = cv2.recoverPose(E[:3], na, nb, np.eye(3), mask=mask)
+    n, R, t, near = cv2.recoverPose(E[:3], na, nb, np.eye(3), mask=mask.copy())
     if n < 8:  # also when the points triangulate too far (> 50 baselines): too little baseline
-        return rotation_only()
+        rot = rotation_only()
+        if rot[2]:
+            return rot
+        # too much parallax for a rotation: count the far points too (see BOOTSTRAP_FAR_BASELINES)
+        n, R, t, near, _ = cv2.recoverPose(E[:3], na, nb, np.eye(3), distanceThresh=BOOTSTRAP_FAR_BASELINES,
+                                           mask=mask)
+        if n < 8:
+            return rot
     t = t.ravel() / np.linalg.norm(t)
-    inl = mask.ravel() > 0
+    inl = near.ravel() > 0
     if _rotation_residual_px(na[inl], pb[inl], R, K_b) < min_parallax_px:
         T[:3, :3] = R
         return T, points, True

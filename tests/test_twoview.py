@@ -180,3 +180,30 @@ def test_tracks_follow_a_fast_turn_at_640x480() -> None:
     assert (err3 < 1.0).sum() < 10
     T, _, ok = bootstrap_pair(img_a, img_b, K.K(), K.K())
     assert ok and rotation_angle_deg(T[:3, :3].T @ T_ba[:3, :3]) < 3.0
+
+
+def test_small_step_at_640x480_is_measured() -> None:
+    """A 1 cm step at 640x480 with the scene ~1.2 m away: ~4 px of parallax, measured (a unit
+    translation in the true direction), though its points lie farther than OpenCV's default 50
+    baselines; a 5 mm step is measured or rotation only, never lost."""
+    from relocdepth.twoview import BOOTSTRAP_FAR_BASELINES, bootstrap_pair
+
+    K = Intrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
+    cfg = SynthConfig(seed=0, frames=2, width=K.width, height=K.height)
+    scene = build_scene(cfg.seed, cfg)
+    T_a = camera_paths(cfg)["seq-01"][0]
+    img_a, depth_a = render(scene, T_a, K)
+    assert np.median(depth_a[depth_a > 0]) * 1.0 / 0.01 > 50  # beyond the default: the test can fail
+    for step in (0.01, 0.005):
+        T_b = T_a.copy()
+        T_b[:3, 3] += T_a[:3, :3] @ np.array([step, 0.0, 0.0])  # sideways in the camera's frame
+        T_b[:3, :3] = T_a[:3, :3] @ cv2.Rodrigues(np.radians([0.5, 1.0, 0.0]))[0]
+        img_b, _ = render(scene, T_b, K)
+        T_ba = relative_pose(torch.from_numpy(T_a)[None], torch.from_numpy(T_b)[None])[0].numpy()
+        T, points, ok = bootstrap_pair(img_a, img_b, K.K(), K.K())
+        assert ok, step
+        assert rotation_angle_deg(T[:3, :3].T @ T_ba[:3, :3]) < 0.2
+        if step == 0.01:
+            assert _angle_deg(T[:3, 3], T_ba[:3, 3]) < 3.0
+            assert np.isfinite(points[:, 2]).sum() >= 30
+            assert np.nanmax(points[:, 2]) <= BOOTSTRAP_FAR_BASELINES
