@@ -73,6 +73,7 @@ class Anchors:
     # vo anchors refined by direct alignment (VOConfig.align): the frames whose alignment to the
     # previous frame was trusted, out of the frames after each sequence's first (None: not aligned)
     aligned: int | None = None
+    track_size: tuple[int, int] | None = None  # vo anchors: the odometry's image size (W, H)
 
 
 def unlinked_sequences(regs: list[Any]) -> list[int]:
@@ -111,11 +112,14 @@ DepthOf = Callable[[list[int], list[np.ndarray]], list[np.ndarray]]
 
 
 def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
-                  cfg: VOConfig | None = None) -> Anchors:
+                  cfg: VOConfig | None = None, track_width: int = 0) -> Anchors:
     """World poses of every training frame from odometry at ``size`` (W, H: images resized, as the
     trainer's un-augmented input) with ``depth``'s maps (in the trainer: the depth network's,
-    :func:`network_depth`). A sequence registered by fewer than :data:`MIN_LINK_INLIERS` agreeing
+    :func:`network_depth`). With ``track_width`` the odometry tracks the stored images resized to
+    that width (at most theirs; never below ``size``; the aspect of ``size``), the depth maps
+    upsampled to them. A sequence registered by fewer than :data:`MIN_LINK_INLIERS` agreeing
     links is listed in ``unlinked``, and the anchors are not to be used."""
+
     t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
@@ -125,6 +129,12 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
         images.append([p[0] for p in pairs])
         Ks.append(pairs[0][1].K())
     depths = [depth(ix, im) for ix, im in zip(seqs, images)]
+    tw = min(track_width, frames.frames[0].intrinsics.width)
+    track = (tw, max(1, round(H * tw / W))) if tw > W else (W, H)
+    if track != (W, H):  # the stored images, read when asked (a long dataset's do not fit in memory)
+        images = [_LinkImages(frames, ix, *track) for ix in seqs]
+        Ks = [frames.frames[ix[0]].intrinsics.scaled(*track).K() for ix in seqs]
+        depths = [_Upsampled(d, track) for d in depths]
     cfg = cfg or VOConfig()
     w = world_trajectory(images, Ks, [d.__getitem__ for d in depths], cfg)
     T = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
@@ -133,7 +143,19 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
     unlinked = unlinked_sequences(w.regs)
     return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
                    [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked,
-                   aligned=w.aligned if cfg.align else None)
+                   aligned=w.aligned if cfg.align else None, track_size=track)
+
+
+class _Upsampled:
+    """Depth maps resized (bilinear) to ``size (W, H)`` when asked."""
+
+    def __init__(self, maps: list[np.ndarray], size: tuple[int, int]) -> None:
+        self.maps, self.size = maps, size
+
+    def __getitem__(self, j: int) -> np.ndarray:
+        import cv2
+
+        return cv2.resize(self.maps[j], self.size, interpolation=cv2.INTER_LINEAR)
 
 
 # World poses (N, 4, 4) and depth maps (H, W) of frames, from their images at the training size and

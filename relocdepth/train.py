@@ -126,6 +126,9 @@ class TrainConfig:
     # it only once depth has learned: on the real walk-through the odometry's ATE fell 8-22 % with
     # depth at AbsRel 0.16-0.19 and rose 29 % at AbsRel 0.25 (README, Quality: trial 25).
     anchor_align_step: int | None = None
+    # "vo": the odometry tracks the stored images down-sized to at most this width (0: the training
+    # images), with the depth network's depth upsampled to them.
+    anchor_track_width: int = 0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
     amp: bool = False  # CUDA/CPU autocast
@@ -184,6 +187,10 @@ class TrainConfig:
             raise UserError("--anchor-align-step needs --anchor vo (it refines the anchors' odometry)")
         if self.anchor_align_step is not None and self.anchor_align_step < 0:
             raise UserError(f"--anchor-align-step must be >= 0, not {self.anchor_align_step}")
+        if self.anchor_track_width and self.anchor != "vo":
+            raise UserError("--anchor-track-width needs --anchor vo (it is where the anchors' odometry tracks)")
+        if self.anchor_track_width < 0:
+            raise UserError(f"--anchor-track-width must be >= 0 pixels, not {self.anchor_track_width}")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         if not (self.w_direction >= 0 and math.isfinite(self.w_direction)):
@@ -694,9 +701,10 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         align = tr.cfg.anchor_align_step is not None and state.step >= tr.cfg.anchor_align_step
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size,
-                            VOConfig(align=align))
+                            VOConfig(align=align), track_width=tr.cfg.anchor_track_width)
         aligned = "" if a.aligned is None else f", {a.aligned} frames aligned"
-        how = f"odometry of {len(a.T_wc)} frames ({a.keyframes} keyframes, {a.lost} lost{aligned})"
+        size = "x".join(map(str, a.track_size))
+        how = f"odometry of {len(a.T_wc)} frames at {size} ({a.keyframes} keyframes, {a.lost} lost{aligned})"
     if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
         weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
         log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
@@ -710,7 +718,8 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
                  registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
-                 turn_measured=a.turn_measured, aligned=a.aligned, used=used)
+                 turn_measured=a.turn_measured, aligned=a.aligned,
+                 track_size=None if a.track_size is None else list(a.track_size), used=used)
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:

@@ -116,6 +116,12 @@ def test_anchor_schedule_and_options() -> None:
     with pytest.raises(UserError, match="--anchor-align-step must be >= 0"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
                                "anchor_align_step": -1})
+    with pytest.raises(UserError, match="--anchor-track-width needs --anchor vo"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked",
+                               "anchor_track_width": 640})
+    with pytest.raises(UserError, match="--anchor-track-width must be >= 0"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
+                               "anchor_track_width": -1})
 
 
 def test_held_anchors_outlast_the_bootstrap_in_the_trainer(synth_shards: Path, tmp_path: Path) -> None:
@@ -209,6 +215,45 @@ def test_aligned_anchors_with_true_depth_are_closer_to_the_truth(synth_shards: P
     assert err[True] < 0.7 * err[False], err
 
 
+def test_anchors_track_the_stored_images_at_the_width_asked(synth_shards_320: Path) -> None:
+    """``track_width``: the odometry runs on the stored 320x240 images (or down-sized to the width
+    asked), with the depth maps given at the training size upsampled to them: the anchors are the
+    world trajectory of exactly those images, K and depth; a width at or below the training size,
+    or 0, keeps the training images."""
+    import cv2
+
+    from relocdepth.anchors import build_anchors, sequences_of
+    from relocdepth.data import ImageFrames
+    from relocdepth.vo import world_trajectory
+
+    frames = ImageFrames.open(synth_shards_320)
+    _, depth_gt = _gt(synth_shards_320, frames)
+    small = [cv2.resize(d, (128, 96), interpolation=cv2.INTER_NEAREST) for d in depth_gt]
+
+    def depth(ix: list[int], ims: list[np.ndarray]) -> list[np.ndarray]:
+        assert all(im.shape == (96, 128, 3) for im in ims)  # the depth network's input: training size
+        return [small[i] for i in ix]
+
+    seqs = sequences_of(frames)
+    plain = build_anchors(frames, depth, (128, 96))
+    assert plain.track_size == (128, 96)
+    for width in (0, 128):
+        again = build_anchors(frames, depth, (128, 96), track_width=width)
+        assert again.track_size == (128, 96) and np.array_equal(again.T_wc, plain.T_wc)
+    for width, size in ((240, (240, 180)), (1000, (320, 240))):
+        a = build_anchors(frames, depth, (128, 96), track_width=width)
+        assert a.track_size == size
+        images = [[cv2.resize(frames.read_image(i), size, interpolation=cv2.INTER_AREA) if size != (320, 240)
+                   else frames.read_image(i) for i in ix] for ix in seqs]
+        K = frames.frames[0].intrinsics.scaled(*size).K()
+        w = world_trajectory(images, [K] * len(seqs),
+                             [lambda j, ix=ix: cv2.resize(small[ix[j]], size, interpolation=cv2.INTER_LINEAR)
+                              for ix in seqs])
+        for ix, T_seq in zip(seqs, w.world):
+            assert np.allclose(a.T_wc[ix], T_seq.astype(np.float32), atol=1e-6)
+        assert not np.allclose(a.T_wc, plain.T_wc, atol=1e-3)  # other pixels, other poses
+
+
 def _cfg(**kw):
     from relocdepth.train import TrainConfig
 
@@ -253,6 +298,17 @@ def test_trainer_aligns_the_anchors_odometry_from_the_step_asked(synth_shards: P
     n = len(ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["T_wc"])
     seqs = len({f.sequence for f in ImageFrames.open(synth_shards).frames})
     assert all(0 < d["aligned"] <= n - seqs for d in built[1:])  # frames after each sequence's first
+
+
+def test_trainer_tracks_the_anchors_odometry_at_the_width_asked(synth_shards_320: Path, tmp_path: Path) -> None:
+    """``anchor_track_width``: the trainer's odometry runs on the stored images (320x240 here, at
+    most the width asked) while it trains at 128x96; the anchors event says at what size."""
+    from relocdepth.train import train
+
+    run = tmp_path / "run"
+    train(synth_shards_320, run, _cfg(max_steps=2, anchor_track_width=1000))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    assert [d["track_size"] for d in log if d.get("event") == "anchors"] == [[320, 240]]
 
 
 def test_linked_anchors_put_every_sequence_in_the_first_ones_world(synth_shards_320: Path) -> None:
