@@ -119,7 +119,6 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
     that width (at most theirs; never below ``size``; the aspect of ``size``), the depth maps
     upsampled to them. A sequence registered by fewer than :data:`MIN_LINK_INLIERS` agreeing
     links is listed in ``unlinked``, and the anchors are not to be used."""
-
     t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
