@@ -110,18 +110,14 @@ def test_anchor_schedule_and_options() -> None:
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "gps"})
     with pytest.raises(UserError, match=">= 0"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "w_anchor": -1})
-    with pytest.raises(UserError, match="--anchor-align-step needs --anchor vo"):
-        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked",
-                               "anchor_align_step": 300})
-    with pytest.raises(UserError, match="--anchor-align-step must be >= 0"):
-        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
-                               "anchor_align_step": -1})
-    with pytest.raises(UserError, match="--anchor-track-width needs --anchor vo"):
-        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked",
-                               "anchor_track_width": 640})
-    with pytest.raises(UserError, match="--anchor-track-width must be >= 0"):
-        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
-                               "anchor_track_width": -1})
+    # the vo-only options: with linked anchors, and below 0
+    for field, option, value in (("anchor_align_step", "--anchor-align-step", 300),
+                                 ("anchor_track_width", "--anchor-track-width", 640)):
+        with pytest.raises(UserError, match=f"{option} needs --anchor vo"):
+            TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked",
+                                   field: value})
+        with pytest.raises(UserError, match=f"{option} must be >= 0"):
+            TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", field: -1})
 
 
 def test_held_anchors_outlast_the_bootstrap_in_the_trainer(synth_shards: Path, tmp_path: Path) -> None:
