@@ -116,9 +116,12 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
     """World poses of every training frame from odometry at ``size`` (W, H: images resized, as the
     trainer's un-augmented input) with ``depth``'s maps (in the trainer: the depth network's,
     :func:`network_depth`). With ``track_width`` the odometry tracks the stored images resized to
-    that width (at most theirs; never below ``size``; the aspect of ``size``), the depth maps
-    upsampled to them. A sequence registered by fewer than :data:`MIN_LINK_INLIERS` agreeing
-    links is listed in ``unlinked``, and the anchors are not to be used."""
+    that width (:func:`relocdepth.refine.track_size`: at most theirs, their aspect, never below
+    ``size``), the depth maps upsampled to them. A sequence registered by fewer than
+    :data:`MIN_LINK_INLIERS` agreeing links is listed in ``unlinked``, and the anchors are not to
+    be used."""
+    from relocdepth.refine import track_size
+
     t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
@@ -128,8 +131,8 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
         images.append([p[0] for p in pairs])
         Ks.append(pairs[0][1].K())
     depths = [depth(ix, im) for ix, im in zip(seqs, images)]
-    tw = min(track_width, frames.frames[0].intrinsics.width)
-    track = (tw, max(1, round(H * tw / W))) if tw > W else (W, H)
+    stored = frames.frames[0].intrinsics
+    track = tuple(track_size(stored.width, stored.height, (W, H), track_width))
     if track != (W, H):  # the stored images, read when asked (a long dataset's do not fit in memory)
         images = [_LinkImages(frames, ix, *track) for ix in seqs]
         Ks = [frames.frames[ix[0]].intrinsics.scaled(*track).K() for ix in seqs]

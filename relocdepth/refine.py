@@ -256,8 +256,8 @@ def cached_map_poses(ckpt_path: Path, manifest_hash: str, keys: list[str],
 def track_size(width: int, height: int, input_size: tuple[int, int], track_width: int) -> tuple[int, int]:
     """Where a stored ``width x height`` training frame is tracked: its own size up to
     ``track_width`` px wide (aspect kept), never below the network's ``input_size (W, H)``;
-    ``track_width`` 0: the network's size."""
-    if track_width <= 0 or width <= input_size[0]:
+    ``track_width`` 0 (or no wider than the network's): the network's size."""
+    if track_width <= input_size[0] or width <= input_size[0]:
         return input_size
     w = min(width, track_width)
     return w, max(1, round(height * w / width))

@@ -197,6 +197,7 @@ def test_track_size() -> None:
     assert track_size(540, 360, (192, 128), 640) == (540, 360)
     assert track_size(128, 96, (128, 96), 640) == (128, 96)  # stored at the network size
     assert track_size(640, 480, (128, 96), 0) == (128, 96)  # 0: the network's size
+    assert track_size(640, 480, (128, 96), 100) == (128, 96)  # never below the network's size
 
 
 def test_matchers_klt_sift_and_the_fallback(rendered: dict, monkeypatch: pytest.MonkeyPatch) -> None:
