@@ -221,7 +221,9 @@ def load_for_inference(path_or_run: str | Path | None, device: str = "cpu") -> t
 
     Returns ``(nets, meta)``; ``meta`` is the checkpoint metadata with ``input_size`` (W, H),
     ``intrinsics`` (training camera at input size), ``alignment`` (Sim(3) dict or None),
-    ``config`` (the training config dict), ``manifest_hash``, ``step`` and ``path``.
+    ``config`` (the training config dict), ``manifest_hash``, ``step``, ``path`` and ``weights``:
+    "average" where the checkpoint holds a moving average of the weights (whose networks these
+    then are), else "raw".
     """
     from relocdepth.models import ModelConfig, Networks
 
@@ -231,8 +233,10 @@ def load_for_inference(path_or_run: str | Path | None, device: str = "cpu") -> t
     model_cfg = dict(meta["model"])
     model_cfg["pretrained"] = None  # the weights come from the checkpoint
     nets = Networks(ModelConfig(**model_cfg))  # not build_networks: no initialisation to log
-    nets.load_state_dict(ckpt["model"])
-    log.info("networks loaded from %s (step %s)", path, meta.get("step"))
+    ema = ckpt.get("ema")  # the weights' moving average, where training kept one (TrainConfig.ema_decay)
+    nets.load_state_dict(ema["weights"] if ema else ckpt["model"])
+    meta["weights"] = "average" if ema else "raw"
+    log.info("networks loaded from %s (step %s, %s weights)", path, meta.get("step"), meta["weights"])
     nets.to(device).eval()
     meta["input_size"] = tuple(meta["input_size"])
     meta["config"] = meta.get("train", {})

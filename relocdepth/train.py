@@ -42,6 +42,7 @@ from relocdepth.method import MethodConfig
 from relocdepth.models import ModelConfig
 from relocdepth.sampler import PairParallax, SamplerConfig, TripletSampler
 from relocdepth.trainlog import TrainLog
+from relocdepth.weightavg import WeightAverage
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +130,12 @@ class TrainConfig:
     # "vo": the odometry tracks the stored images down-sized to at most this width (0: the training
     # images), with the depth network's depth upsampled to them.
     anchor_track_width: int = 0
+    # An exponential moving average of the weights (not in the paper), kept beside them with this
+    # decay per step and written into every checkpoint, whose networks it then is for localisation
+    # and evaluation (0: none). Training itself (the anchors too) uses the raw weights, so a run
+    # takes the same steps with or without it. Early on the decay is capped at (1 + n) / (10 + n)
+    # after n steps, so that the average does not hold on to the random initialisation.
+    ema_decay: float = 0.0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
     amp: bool = False  # CUDA/CPU autocast
@@ -198,6 +205,8 @@ class TrainConfig:
         if self.w_direction and (self.bootstrap == "off" or not self.w_bootstrap):
             raise UserError("--w-direction needs a --bootstrap and --w-bootstrap > 0 (it holds the DSC's "
                             "translation directions to the bootstrap's, weighted and faded with that term)")
+        if not 0.0 <= self.ema_decay < 1.0:  # NaN fails too
+            raise UserError(f"--ema-decay must be in [0, 1), not {self.ema_decay}")
         if self.bootstrap_track_width < 0:
             raise UserError(f"--bootstrap-track-width must be >= 0 pixels, not {self.bootstrap_track_width}")
         if self.bootstrap_track_width and self.bootstrap != "essential":
@@ -343,7 +352,7 @@ def anchor_due(cfg: TrainConfig, step: int, built_at: int | None) -> bool:
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
 RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", "method.recompute_warps",
                       "max_steps", "max_minutes", "log_every", "checkpoint_every", "keep_last", "max_nonfinite",
-                      "progress", "resume", "sampler.epochs")
+                      "progress", "resume", "sampler.epochs", "ema_decay")
 
 
 @dataclass
@@ -381,7 +390,7 @@ class Trainer:
     log: TrainLog
     gt_poses: Any = None  # (N, 4, 4) float32 tensor of the research oracle, else None
     gt_depths: Any = None  # list of (H, W) float32 depth maps of the research oracle, else None
-
+    ema: WeightAverage | None = None  # TrainConfig.ema_decay
 
 # -- setup -----------------------------------------------------------------------------------------
 class _LossModule:
@@ -511,6 +520,12 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     if ck is not None:
         _restore(ck, nets, optimizer, scaler, state)
         log.info("resuming %s at step %d (epoch %d, triplet %d)", ck_path, state.step, state.epoch, state.position)
+    ema = WeightAverage(nets, cfg.ema_decay) if cfg.ema_decay else None
+    if ema is not None and ck is not None:
+        if ck.get("ema"):
+            ema.load_state_dict(ck["ema"])
+        else:
+            log.info("no weight average in %s: it starts from the weights of step %d", ck_path, state.step)
     loss_module = _LossModule.build(nets, cfg.method)
     if dist.enabled:
         from torch.nn.parallel import DistributedDataParallel as DDP
@@ -528,7 +543,7 @@ def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer,
     tlog = TrainLog(run_dir if dist.is_main else None, cfg.progress and dist.is_main, total, state.step, cfg.epochs,
                     log_every=cfg.log_every, max_seconds=None if cfg.max_minutes is None else 60.0 * cfg.max_minutes)
     tr = Trainer(cfg, run_dir, dist, device, frames, sampler, data, nets, loss_module, optimizer, scaler,
-                 tlog, gt_poses, gt_depths)
+                 tlog, gt_poses, gt_depths, ema)
     return tr, state
 
 
@@ -624,6 +639,7 @@ def checkpoint(tr: Trainer, state: RunState) -> None:
         "scaler": tr.scaler.state_dict() if tr.scaler.is_enabled() else None,
         "sampler": {"epoch": state.epoch, "position": state.position}, "rng": _rng_state(),
         "anchors": None if state.anchors is None else {"T_wc": state.anchors, "step": state.anchors_step},
+        "ema": None if tr.ema is None else tr.ema.state_dict(),
     }, keep_last=tr.cfg.keep_last)
     state.last_checkpoint = str(path)
     tr.log.event("checkpoint", state.step, path=path.name)
@@ -751,6 +767,8 @@ def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
         return False
     tr.scaler.step(tr.optimizer)
     tr.scaler.update()
+    if tr.ema is not None:
+        tr.ema.update(tr.nets)
     state.nonfinite_streak = 0
     return True
 
