@@ -281,7 +281,7 @@ def evaluate(
                     "train_frames": len(train_recs), "test_frames": len(test_recs),
                     "test_sequences": list(dict.fromkeys(te.sequences))},
         "checkpoint": {"path": str(ckpt_path), "step": int(predictor.meta.get("step", 0)),
-                       "input_size": list(predictor.input_size),
+                       "input_size": list(predictor.input_size), "weights": predictor.meta.get("weights", "raw"),
                        "same_data": predictor.meta.get("manifest_hash") == ds.manifest_hash},
         "config": _jsonable(asdict(cfg)),
         "alignment": alignment | {"rotation_only_fit": "train rotations"},

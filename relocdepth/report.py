@@ -25,7 +25,8 @@ def format_table(report: dict) -> str:
     """A human-readable summary of a report (schema ``report``)."""
     pose, base, ds = report["pose"], report["baselines"], report["dataset"]
     lines = [
-        (f"evaluation of {report['checkpoint']['path']} (step {report['checkpoint']['step']}) "
+        (f"evaluation of {report['checkpoint']['path']} (step {report['checkpoint']['step']}"
+         f"{', averaged weights' if report['checkpoint'].get('weights') == 'average' else ''}) "
         f"on {ds['path']}: {ds['train_frames']} train / {ds['test_frames']} test frames"),
         "",
         f"pose, test frames, Sim(3) fitted on train (scale {report['alignment']['scale']:.4g})",

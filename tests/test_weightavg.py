@@ -83,6 +83,12 @@ def test_training_with_the_average_takes_the_same_steps_and_saves_it(synth_shard
     nets, meta = ckpt_io.load_for_inference(plain)
     assert meta["weights"] == "raw"
     assert all(torch.equal(v, a["model"][k]) for k, v in nets.state_dict().items())
+    # and the evaluation's report says which (its schema checked as it is written)
+    from relocdepth.evaluate import EvalConfig, evaluate
+    from relocdepth.report import format_table
+
+    report = evaluate(synth_shards, averaged, EvalConfig(), tmp_path / "report.json")
+    assert report["checkpoint"]["weights"] == "average" and "averaged weights" in format_table(report)
 
 
 def test_a_resumed_run_continues_its_average_exactly(synth_shards: Path, tmp_path: Path) -> None:
