@@ -392,6 +392,7 @@ class Trainer:
     gt_depths: Any = None  # list of (H, W) float32 depth maps of the research oracle, else None
     ema: WeightAverage | None = None  # TrainConfig.ema_decay
 
+
 # -- setup -----------------------------------------------------------------------------------------
 class _LossModule:
     """Created lazily as an nn.Module subclass so that DDP wraps the loss computation (a DDP
