@@ -94,7 +94,8 @@ def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
 
     with tempfile.TemporaryDirectory() as tmp:
         # 640x480 x 6 triplets needs > 21 GB on CPU unless the warps are recomputed in backward
-        cfg = TrainConfig.from_dict({"size": (w, h), "pretrained": None, "workers": 0,
+        # with the weights' moving average, as the CPU recipes keep it (its update is in the full step)
+        cfg = TrainConfig.from_dict({"size": (w, h), "pretrained": None, "workers": 0, "ema_decay": 0.99,
                                      "progress": False, "recompute_warps": w * h >= 640 * 480})
         tr, state = setup(shards, Path(tmp) / "run", cfg)
         trips = list(tr.sampler.iter_epoch(0))[:6]
