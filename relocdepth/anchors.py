@@ -74,6 +74,9 @@ class Anchors:
     # previous frame was trusted, out of the frames after each sequence's first (None: not aligned)
     aligned: int | None = None
     track_size: tuple[int, int] | None = None  # vo anchors: the odometry's image size (W, H)
+    # vo anchors refined by bundle adjustment (VOConfig.bundle): per sequence its tracks,
+    # observations and median reprojection error before / after (None: not adjusted)
+    bundled: list[dict] | None = None
 
 
 def unlinked_sequences(regs: list[Any]) -> list[int]:
@@ -145,7 +148,7 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
     unlinked = unlinked_sequences(w.regs)
     return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
                    [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked,
-                   aligned=w.aligned if cfg.align else None, track_size=track)
+                   aligned=w.aligned if cfg.align else None, track_size=track, bundled=w.bundled)
 
 
 class _Upsampled:

@@ -127,6 +127,11 @@ class TrainConfig:
     # it only once depth has learned: on the real walk-through the odometry's ATE fell 8-22 % with
     # depth at AbsRel 0.16-0.19 and rose 29 % at AbsRel 0.25 (README, Quality: trial 25).
     anchor_align_step: int | None = None
+    # "vo": refine each build's odometry by bundle adjustment over the training frames' multi-frame
+    # tracks (relocdepth.ba; before any alignment). On the real walk-through its error fell from
+    # 0.232-0.252 m to 0.146-0.152 m with the depth network's depth at steps 150-250 (README,
+    # Quality: trial 29).
+    anchor_bundle: bool = False
     # "vo": the odometry tracks the stored images down-sized to at most this width (0: the training
     # images), with the depth network's depth upsampled to them.
     anchor_track_width: int = 0
@@ -194,6 +199,8 @@ class TrainConfig:
             raise UserError("--anchor-align-step needs --anchor vo (it refines the anchors' odometry)")
         if self.anchor_align_step is not None and self.anchor_align_step < 0:
             raise UserError(f"--anchor-align-step must be >= 0, not {self.anchor_align_step}")
+        if self.anchor_bundle and self.anchor != "vo":
+            raise UserError("--anchor-bundle needs --anchor vo (it refines the anchors' odometry)")
         if self.anchor_track_width and self.anchor != "vo":
             raise UserError("--anchor-track-width needs --anchor vo (it is where the anchors' odometry tracks)")
         if self.anchor_track_width < 0:
@@ -718,8 +725,11 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         align = tr.cfg.anchor_align_step is not None and state.step >= tr.cfg.anchor_align_step
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size,
-                            VOConfig(align=align), track_width=tr.cfg.anchor_track_width)
+                            VOConfig(align=align, bundle=tr.cfg.anchor_bundle), track_width=tr.cfg.anchor_track_width)
         aligned = "" if a.aligned is None else f", {a.aligned} frames aligned"
+        if a.bundled is not None:
+            aligned += ", bundle-adjusted: " + "; ".join(
+                f"{b['tracks']} tracks, {b['start_px']:.2f} -> {b['final_px']:.2f} px" for b in a.bundled)
         size = "x".join(map(str, a.track_size))
         how = f"odometry of {len(a.T_wc)} frames at {size} ({a.keyframes} keyframes, {a.lost} lost{aligned})"
     if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
@@ -735,7 +745,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
                  registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
-                 turn_measured=a.turn_measured, aligned=a.aligned,
+                 turn_measured=a.turn_measured, aligned=a.aligned, bundled=a.bundled,
                  track_size=None if a.track_size is None else list(a.track_size), used=used)
 
 

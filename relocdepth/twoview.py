@@ -56,11 +56,13 @@ def as_grey(image: np.ndarray) -> np.ndarray:
     raise ValueError(f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
 
 
-def detect_corners(grey: np.ndarray, cfg: TrackConfig = TrackConfig()) -> np.ndarray:
-    """Shi-Tomasi corners ``(N, 2)`` float32 (x, y pixels) of an (H, W) uint8 image; N may be 0."""
+def detect_corners(grey: np.ndarray, cfg: TrackConfig = TrackConfig(),
+                   mask: np.ndarray | None = None) -> np.ndarray:
+    """Shi-Tomasi corners ``(N, 2)`` float32 (x, y pixels) of an (H, W) uint8 image, strongest
+    first; N may be 0. ``mask (H, W)`` uint8: corners only where it is non-zero."""
     import cv2
 
-    pts = cv2.goodFeaturesToTrack(grey, cfg.max_corners, cfg.quality_level, cfg.min_distance)
+    pts = cv2.goodFeaturesToTrack(grey, cfg.max_corners, cfg.quality_level, cfg.min_distance, mask=mask)
     return np.zeros((0, 2), np.float32) if pts is None else pts.reshape(-1, 2).astype(np.float32)
 
 
@@ -70,12 +72,21 @@ def track_points(grey_a: np.ndarray, grey_b: np.ndarray, pts_a: np.ndarray,
 
     Returns the kept points ``(M, 2)`` in a and their positions ``(M, 2)`` in b (float32): tracks
     that LK lost, that left the image, or whose backward track misses the start by more than
-    ``cfg.fb_max_px`` are dropped.
+    ``cfg.fb_max_px`` are dropped (:func:`track_mask`).
     """
+    q, keep = track_mask(grey_a, grey_b, pts_a, cfg)
+    return np.ascontiguousarray(pts_a, dtype=np.float32).reshape(-1, 2)[keep], q[keep]
+
+
+def track_mask(grey_a: np.ndarray, grey_b: np.ndarray, pts_a: np.ndarray,
+               cfg: TrackConfig = TrackConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``(N, 2)`` float32 in ``grey_b`` of ``pts_a (N, 2)`` tracked from ``grey_a``, and
+    which of them to keep ``(N,)`` bool (found both ways, inside b, forward-backward within
+    ``cfg.fb_max_px``)."""
     import cv2
 
     if len(pts_a) == 0:
-        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     p0 = np.ascontiguousarray(pts_a, dtype=np.float32).reshape(-1, 1, 2)
     lk = {"winSize": (cfg.win_size, cfg.win_size), "maxLevel": cfg.max_level,
           "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
@@ -86,7 +97,7 @@ def track_points(grey_a: np.ndarray, grey_b: np.ndarray, pts_a: np.ndarray,
     fb = np.linalg.norm(p0r.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
     inside = (q[:, 0] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] >= 0) & (q[:, 1] <= h - 1)
     keep = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb <= cfg.fb_max_px) & inside
-    return p0.reshape(-1, 2)[keep], q[keep]
+    return q, keep
 
 
 def homography_residual(pts_a: np.ndarray, pts_b: np.ndarray, ransac_px: float,

@@ -111,6 +111,9 @@ def test_anchor_schedule_and_options() -> None:
     with pytest.raises(UserError, match=">= 0"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "w_anchor": -1})
     # the vo-only options: with linked anchors, and below 0
+    with pytest.raises(UserError, match="--anchor-bundle needs --anchor vo"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked",
+                               "anchor_bundle": True})
     for field, option, value in (("anchor_align_step", "--anchor-align-step", 300),
                                  ("anchor_track_width", "--anchor-track-width", 640)):
         with pytest.raises(UserError, match=f"{option} needs --anchor vo"):
@@ -294,6 +297,25 @@ def test_trainer_aligns_the_anchors_odometry_from_the_step_asked(synth_shards: P
     n = len(ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["T_wc"])
     seqs = len({f.sequence for f in ImageFrames.open(synth_shards).frames})
     assert all(0 < d["aligned"] <= n - seqs for d in built[1:])  # frames after each sequence's first
+
+
+def test_trainer_bundle_adjusts_the_anchors_odometry_when_asked(synth_shards: Path, tmp_path: Path) -> None:
+    """``anchor_bundle``: the build refines each sequence's odometry by bundle adjustment, and the
+    anchors event says how (tracks, median reprojection error before and after)."""
+    from relocdepth.train import train
+
+    for bundle in (False, True):
+        run = tmp_path / f"run-{bundle}"
+        train(synth_shards, run, _cfg(max_steps=2, anchor_bundle=bundle))
+        log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+        built = [d for d in log if d.get("event") == "anchors"]
+        assert len(built) == 1
+        if not bundle:
+            assert built[0]["bundled"] is None
+            continue
+        seqs = built[0]["bundled"]
+        assert len(seqs) == len(built[0]["registration"]) + 1
+        assert all(b["tracks"] > 0 and b["final_px"] <= b["start_px"] for b in seqs)
 
 
 def test_trainer_tracks_the_anchors_odometry_at_the_width_asked(synth_shards_320: Path, tmp_path: Path) -> None:

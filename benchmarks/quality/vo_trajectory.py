@@ -8,7 +8,8 @@ checkpoint (its depth network only) and, as the upper bound, from ground truth. 
 ground-truth poses after a Sim(3) alignment (Umeyama): ATE (RMSE and median) per sequence (each
 aligned alone: drift) and jointly (one alignment for all: drift plus registration), the relative
 pose error of frames k apart vs the identity's, the fitted scale, the registration's own error,
-and the time per frame.
+and the time per frame. With --bundle each sequence's odometry is also refined by bundle
+adjustment over its multi-frame tracks (`relocdepth.ba`), with --align by direct alignment.
 
     python benchmarks/quality/vo_trajectory.py /tmp/q1/data/shards \
         --checkpoint runs/kitchen-w10
@@ -206,6 +207,8 @@ def main() -> None:
     ap.add_argument("--query-every", type=int, default=VOConfig.query_every)
     ap.add_argument("--align", action="store_true",
                     help="also refine each sequence's odometry by direct alignment (rows marked 'aligned')")
+    ap.add_argument("--bundle", action="store_true",
+                    help="also refine each sequence's odometry by bundle adjustment (rows marked 'bundled')")
     ap.add_argument("--json", type=Path, help="also write the figures here")
     a = ap.parse_args()
     size = tuple(int(v) for v in a.size.lower().split("x")) if a.size else None
@@ -223,6 +226,8 @@ def main() -> None:
         rows[label] = run(seqs, depths, cfg, a.k) | extra
         if a.align:
             rows[f"{label}, aligned"] = run(seqs, depths, replace(cfg, align=True), a.k) | extra
+        if a.bundle:
+            rows[f"{label}, bundled"] = run(seqs, depths, replace(cfg, bundle=True), a.k) | extra
     print_table(rows)
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))

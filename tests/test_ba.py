@@ -1,0 +1,220 @@
+"""Bundle adjustment of odometry: its derivatives against finite differences, and its fit on a
+rendered sequence with known poses and depth."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from relocdepth.ba import (
+    BAConfig,
+    build_tracks,
+    bundle_adjust,
+    matrix_to_rotvec,
+    reprojection_jacobians,
+    rotation_prior_jacobians,
+    rotvec_to_matrix,
+    triangulate,
+)
+from relocdepth.eval_geometry import apply_sim3, rotation_angle_deg, umeyama
+from relocdepth.synth import SEVEN_SCENES_INTRINSICS, SynthConfig, build_scene, camera_paths, render
+from relocdepth.vo import VOConfig, chain, world_trajectory
+
+INTR = SEVEN_SCENES_INTRINSICS.scaled(128, 96)  # the demo scene's camera
+
+
+@pytest.fixture(scope="module")
+def rendered() -> dict:
+    """24 frames of the demo scene's first path, every third (~2-3 cm and ~1.5 deg apart)."""
+    cfg = SynthConfig(seed=0, frames=72, width=INTR.width, height=INTR.height)
+    scene = build_scene(cfg.seed, cfg)
+    T = camera_paths(cfg)["seq-01"][0:72:3]
+    frames = [render(scene, P, INTR) for P in T]
+    return {"T": T, "images": [f[0] for f in frames], "depth": [f[1] for f in frames]}
+
+
+def _ate(T_est: np.ndarray, T_gt: np.ndarray, with_scale: bool = True) -> float:
+    fit = umeyama(T_est[:, :3, 3], T_gt[:, :3, 3], with_scale=with_scale)
+    T_al = apply_sim3(float(fit.scale), fit.R, fit.t, T_est)
+    return float(np.sqrt(np.mean(np.sum((T_al[:, :3, 3] - T_gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def _relative_to_first(T: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(T[0]) @ T
+
+
+def test_rotation_vectors_round_trip_against_opencv() -> None:
+    rng = np.random.default_rng(0)
+    r = np.concatenate([rng.normal(0, 1, (20, 3)), rng.normal(0, 1e-9, (3, 3)), np.zeros((1, 3))])
+    R = rotvec_to_matrix(r)
+    assert np.allclose(R, np.stack([cv2.Rodrigues(v)[0] for v in r]), atol=1e-12)
+    assert np.allclose(matrix_to_rotvec(R[:20]), r[:20], atol=1e-9)
+
+
+def test_triangulation_recovers_points_seen_from_known_cameras() -> None:
+    rng = np.random.default_rng(1)
+    X = rng.uniform([-1, -1, 3], [1, 1, 5], (10, 3))
+    T_cw = np.stack([np.linalg.inv(np.r_[np.c_[rotvec_to_matrix(rng.normal(0, 0.05, (1, 3)))[0],
+                                               rng.normal(0, 0.3, 3)], [[0, 0, 0, 1]]]) for _ in range(3)])
+    frame, track = np.repeat(np.arange(3), 10), np.tile(np.arange(10), 3)
+    Xc = np.einsum("mij,mj->mi", T_cw[frame, :3, :3], X[track]) + T_cw[frame, :3, 3]
+    assert np.allclose(triangulate(T_cw, Xc[:, :2] / Xc[:, 2:], frame, track, 10), X, atol=1e-9)
+
+
+def test_reprojection_derivatives_match_finite_differences() -> None:
+    rng = np.random.default_rng(2)
+    R = rotvec_to_matrix(rng.normal(0, 0.3, (5, 3)))
+    t = rng.normal(0, 0.5, (5, 3))
+    X = rng.normal(0, 0.5, (5, 3)) + (np.swapaxes(R, 1, 2) @ np.array([0, 0, 4.0]))  # in front
+    f = np.array([300.0, 280.0])
+
+    def pixels(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
+        Xc = np.einsum("mij,mj->mi", R, X) + t
+        return f * Xc[:, :2] / Xc[:, 2:]
+
+    Xc = np.einsum("mij,mj->mi", R, X) + t
+    Jc, Jp = reprojection_jacobians(Xc, R, f)
+    h = 1e-6
+    for k in range(6):  # the camera's move X_c -> exp(w) X_c + v
+        d = np.zeros((5, 6))
+        d[:, k] = h
+        step = rotvec_to_matrix(d[:, :3])
+        moved = pixels(step @ R, np.einsum("mij,mj->mi", step, t) + d[:, 3:], X)
+        assert np.allclose((moved - pixels(R, t, X)) / h, Jc[:, :, k], rtol=1e-4, atol=1e-3)
+    for k in range(3):
+        d = np.zeros((5, 3))
+        d[:, k] = h
+        assert np.allclose((pixels(R, t, X + d) - pixels(R, t, X)) / h, Jp[:, :, k], rtol=1e-4, atol=1e-3)
+
+
+def test_rotation_prior_derivatives_match_finite_differences() -> None:
+    """At the measured rotations (residual 0, where the fit holds them) the first-order
+    derivatives are exact."""
+    rng = np.random.default_rng(3)
+    R = rotvec_to_matrix(rng.normal(0, 0.4, (4, 3)))
+    M_T = np.swapaxes(R[1:] @ np.swapaxes(R[:-1], 1, 2), 1, 2)
+    J = rotation_prior_jacobians(M_T, R)
+    h = 1e-5  # OpenCV's Rodrigues rounds far smaller angles to 0
+    for j in range(3):
+        for side in range(2):  # move camera j (side 0) or j + 1 (side 1) of pair j
+            for k in range(3):
+                w = np.zeros((4, 3))
+                w[j + side, k] = h
+                Rm = rotvec_to_matrix(w) @ R
+                r = matrix_to_rotvec(M_T[j:j + 1] @ Rm[j + 1:j + 2] @ Rm[j:j + 1].transpose(0, 2, 1))[0]
+                assert np.allclose(r / h, J[j, side, :, k], atol=1e-4)
+
+
+def test_tracks_last_several_frames_and_follow_the_scene(rendered: dict) -> None:
+    """Tracks on the rendered frames: most last 3 frames or more, and each track's pixels are the
+    projections of one scene point (triangulated with the true poses, they reproject within 1 px)."""
+    tr = build_tracks(rendered["images"])
+    counts = np.bincount(tr.track)
+    assert np.mean(counts[tr.track] >= 3) > 0.7
+    T_cw = np.linalg.inv(rendered["T"])
+    K = INTR.K()
+    rays = (tr.xy - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+    X = triangulate(T_cw, rays, tr.frame, tr.track, tr.n_tracks)
+    Xc = np.einsum("mij,mj->mi", T_cw[tr.frame, :3, :3], X[tr.track]) + T_cw[tr.frame, :3, 3]
+    err = np.linalg.norm((Xc[:, :2] / Xc[:, 2:] - rays) * K[0, 0], axis=1)
+    long = counts[tr.track] >= 3
+    assert np.median(err[long]) < 0.3 and np.mean(err[long] < 1.0) > 0.9
+
+
+def test_true_poses_stay_and_the_scale_comes_from_depth(rendered: dict) -> None:
+    """Started at the truth, the fit stays near it (the tracks' own errors move it a few mm over
+    the 0.6 m path), in metres; started at the truth shrunk to half its size, it comes to the same
+    poses in metres: the points start at the depth maps' depths."""
+    T = _relative_to_first(rendered["T"])
+    K, depth = INTR.K(), rendered["depth"].__getitem__
+    out = bundle_adjust(rendered["images"], K, T, depth)
+    assert out.tracks > 300 and out.final_px < out.start_px and out.scale == pytest.approx(1.0, abs=0.05)
+    assert _ate(out.T_wc, T, with_scale=False) < 0.025 and _ate(out.T_wc, T) < 0.01
+    half = T.copy()
+    half[:, :3, 3] *= 0.5
+    shrunk = bundle_adjust(rendered["images"], K, half, depth)
+    assert np.abs(shrunk.T_wc[:, :3, 3] - out.T_wc[:, :3, 3]).max() < 0.002
+    # depth in other units (a network's): the result is in those units
+    doubled = bundle_adjust(rendered["images"], K, T, lambda j: 2.0 * rendered["depth"][j])
+    assert np.abs(doubled.T_wc[:, :3, 3] - 2.0 * out.T_wc[:, :3, 3]).max() < 0.004
+
+
+def test_drift_is_taken_out(rendered: dict) -> None:
+    """The truth with a steady turn of 0.4 deg a frame added to every step (the odometry's kind of
+    error, 9 deg by the last frame): the fit comes to the same poses as from the truth itself."""
+    T = _relative_to_first(rendered["T"])
+    turn = np.eye(4)
+    turn[:3, :3] = rotvec_to_matrix(np.radians([[0.0, 0.4, 0.0]]))[0]
+    drifted = [T[0]]
+    for j in range(1, len(T)):
+        drifted.append(drifted[-1] @ np.linalg.inv(T[j - 1]) @ T[j] @ turn)
+    drifted = np.stack(drifted)
+    K, depth = INTR.K(), rendered["depth"].__getitem__
+    out = bundle_adjust(rendered["images"], K, drifted, depth)
+    from_truth = bundle_adjust(rendered["images"], K, T, depth)
+    assert rotation_angle_deg(drifted[-1, :3, :3].T @ T[-1, :3, :3]) > 9.0
+    assert np.abs(out.T_wc[:, :3, 3] - from_truth.T_wc[:, :3, 3]).max() < 0.002
+    assert rotation_angle_deg(np.swapaxes(out.T_wc[:, :3, :3], 1, 2) @ from_truth.T_wc[:, :3, :3]).max() < 0.2
+
+
+def test_the_odometry_is_refined(rendered: dict) -> None:
+    """From the odometry of the same frames (true depth), the fit is much nearer the truth."""
+    T = _relative_to_first(rendered["T"])
+    K, depth = INTR.K(), rendered["depth"].__getitem__
+    odometry = chain(rendered["images"], K, depth).T_wc
+    out = bundle_adjust(rendered["images"], K, odometry, depth)
+    assert _ate(out.T_wc, T) < 0.5 * _ate(odometry, T)
+
+
+def test_a_frame_without_tracks_keeps_its_step_from_the_one_before(rendered: dict) -> None:
+    images, T = rendered["images"][:8], _relative_to_first(rendered["T"][:8])
+    tr = build_tracks(images)
+    keep = tr.frame != 7
+    tr.frame, tr.track, tr.xy = tr.frame[keep], tr.track[keep], tr.xy[keep]
+    start = T.copy()
+    start[7, :3, 3] += 0.05  # a start the tracks cannot correct
+    out = bundle_adjust(images, INTR.K(), start, tracks=tr)
+    step_in = np.linalg.inv(start[6]) @ start[7]
+    assert np.allclose(np.linalg.inv(out.T_wc[6]) @ out.T_wc[7], step_in, atol=1e-9)
+
+
+def test_world_trajectory_refines_each_sequence_when_asked(rendered: dict) -> None:
+    """``VOConfig.bundle``: the odometry in the world trajectory is refined, and it says how."""
+    images, K, depth = rendered["images"], INTR.K(), rendered["depth"].__getitem__
+    w = world_trajectory([images], [K], [depth], VOConfig(bundle=True))
+    assert w.bundled is not None and w.bundled[0]["tracks"] > 300
+    assert w.bundled[0]["final_px"] < w.bundled[0]["start_px"]
+    assert np.allclose(w.world[0], bundle_adjust(images, K, chain(images, K, depth).T_wc, depth).T_wc)
+    assert world_trajectory([images], [K], [depth], VOConfig()).bundled is None
+
+
+def test_nothing_to_fit_returns_the_poses_as_given() -> None:
+    """No track seen twice: the poses come back as given."""
+    T = np.repeat(np.eye(4)[None], 3, axis=0)
+    T[:, 0, 3] = [0.0, 0.1, 0.2]
+    flat = [np.full((96, 128, 3), 128, np.uint8)] * 3  # no corners at all
+    out = bundle_adjust(flat, INTR.K(), T, cfg=BAConfig())
+    assert out.tracks == 0 and np.allclose(out.T_wc, T)
+
+
+def test_track_steps_off_the_pairs_epipolar_geometry_are_dropped() -> None:
+    """Two views 30 cm apart of 150 points, 20 more points that move on their own (3-6 px, across
+    the epipolar lines): the check keeps the first and ends the others; with too few points to fit
+    a fundamental matrix it keeps all."""
+    from relocdepth.ba import _epipolar_inliers
+
+    rng = np.random.default_rng(4)
+    K = INTR.K()
+    X = rng.uniform([-1.5, -1, 2], [1.5, 1, 5], (170, 3))
+    R = rotvec_to_matrix(np.radians([[1.0, 3.0, 0.5]]))[0]
+    a = X @ K.T
+    b = (X @ R.T + np.array([0.3, 0.02, 0.05])) @ K.T
+    a, b = a[:, :2] / a[:, 2:], b[:, :2] / b[:, 2:]
+    b[150:, 1] += rng.choice([-1, 1], 20) * rng.uniform(3, 6, 20)  # the baseline is along x
+    keep = np.ones(170, bool)
+    kept = _epipolar_inliers(a.astype(np.float32), b.astype(np.float32), keep, 1.0)
+    assert kept[:150].mean() > 0.97 and not kept[150:].any()
+    few = np.zeros(170, bool)
+    few[:10] = True
+    assert (_epipolar_inliers(a.astype(np.float32), b.astype(np.float32), few, 1.0) == few).all()
