@@ -8,7 +8,8 @@ scene point, and all poses and points are fitted to every observation at once (r
 in pixels, Huber-robust; Levenberg-Marquardt with the points eliminated by their Schur complement,
 the classical sparse bundle adjustment). A point seen from three frames ties the three poses
 together. On the real walk-through (60 frames ~20 cm apart, 192x128, depth from a network at
-AbsRel ~0.2) the trajectory's error fell from 0.232-0.252 m to 0.146-0.151 m (README, Quality).
+AbsRel ~0.2) the trajectory's error fell from 0.223-0.252 m to 0.142-0.147 m (README, Quality:
+trial 29).
 
 Two things the tracks cannot do alone. A fast turn leaves a pair of frames a dozen shared tracks,
 too few to fix their relative pose (fitted on the tracks alone, such pairs came out 9-12 deg off
@@ -51,7 +52,7 @@ class BAConfig:
 
 @dataclass
 class Tracks:
-    """Observations of tracked points: frame index, track id and pixel ``(x, y)`` of each."""
+    """Observations of tracked points, in frame order: frame index, track id and pixel ``(x, y)``."""
 
     frame: np.ndarray  # (M,) int
     track: np.ndarray  # (M,) int
@@ -187,10 +188,12 @@ def bundle_adjust(images: Sequence[np.ndarray], K: np.ndarray, T_wc: np.ndarray,
     odometry's) by bundle adjustment over their tracks (``tracks``, or :func:`build_tracks`).
 
     Frame 0's pose is held. With ``depth`` (frame j's depth map ``depth(j)``, any units, <= 0
-    unknown) the result is scaled about frame 0 so that the points' depths match the maps' (the
-    median ratio over all observations); without it the scale is the fit's own (about the starting
-    poses'). A frame with no observation in the fit keeps its starting pose relative to the frame
-    before it. Nothing to fit (no track seen from two frames): the poses are returned as given.
+    unknown) each track's point starts along its first ray at the map's depth there, and the
+    result is scaled about frame 0 so that the points' depths match the maps' (the median ratio
+    over all observations); without it the points are triangulated from the starting poses and
+    the scale is the fit's own (about theirs). A frame with no observation in the fit keeps its
+    starting pose relative to the frame before it. Nothing to fit (no track seen from two frames
+    from rays that meet): the poses are returned as given.
     """
     T_wc = np.asarray(T_wc, np.float64)
     K = np.asarray(K, np.float64)
@@ -219,7 +222,7 @@ def bundle_adjust(images: Sequence[np.ndarray], K: np.ndarray, T_wc: np.ndarray,
         + T_wc[tr.frame[first], :3, 3]
     # ... to be used: seen often enough, in front of every camera and from rays that do meet. (Not
     # also near every pixel: the starting poses' errors are what the fit is for, and dropping the
-    # tracks they miss by 4 px left the walk-through's trajectory 0.20-0.24 m off instead of 0.14.)
+    # tracks they miss by 4 px left the walk-through's trajectory 0.20-0.25 m off instead of 0.14.)
     Xc = _in_camera(T_cw[tr.frame, :3, :3], T_cw[tr.frame, :3, 3], X[tr.track])
     with np.errstate(divide="ignore", invalid="ignore"):
         dirs = X[tr.track] - T_wc[tr.frame, :3, 3]

@@ -129,7 +129,7 @@ class TrainConfig:
     anchor_align_step: int | None = None
     # "vo": refine each build's odometry by bundle adjustment over the training frames' multi-frame
     # tracks (relocdepth.ba; before any alignment). On the real walk-through its error fell from
-    # 0.232-0.252 m to 0.146-0.152 m with the depth network's depth at steps 150-250 (README,
+    # 0.223-0.252 m to 0.142-0.147 m with the depth network's depth at steps 150-400 (README,
     # Quality: trial 29).
     anchor_bundle: bool = False
     # "vo": the odometry tracks the stored images down-sized to at most this width (0: the training
