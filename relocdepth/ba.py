@@ -12,13 +12,13 @@ AbsRel ~0.2) the trajectory's error fell from 0.223-0.252 m to 0.142-0.147 m (RE
 trial 29).
 
 Two things the tracks cannot do alone. A fast turn leaves a pair of frames a dozen shared tracks,
-too few to fix their relative pose (fitted on the tracks alone, such pairs came out 9-12 deg off
-where the odometry had 1.1-1.3), so each neighbouring pair's rotation is also held softly to the
+too few to fix their relative pose, so each neighbouring pair's rotation is also held softly to the
 starting poses' (``BAConfig.rotation_prior_px_per_deg``); with a hundred shared tracks the tracks
-decide. And the fit has no scale: frame 0 is held, and the result is scaled about it so that the
-points' depths match a depth map per frame (the median ratio over every observation), so it is in
-the depth's units, as the odometry is. (Fitting the points' depths to the maps themselves made it
-worse with a network's depth, 0.27-0.45 m: its errors are not noise.)
+decide (on the walk-through it took the error from 0.154 to 0.143 m). And the fit has no scale:
+the points start at a depth map's depth along their first ray, frame 0 is held, and the result is
+scaled about it so that the points' depths match the maps' (the median ratio over every
+observation), so it is in the depth's units, as the odometry is. (Fitting the points' depths to
+the maps as well made it worse with a network's depth, 0.27-0.45 m: its errors are not noise.)
 
 Conventions (DESIGN.md): poses are world-from-camera ``T_wc`` (4, 4), OpenCV axes.
 """
