@@ -726,12 +726,12 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size,
                             VOConfig(align=align, bundle=tr.cfg.anchor_bundle), track_width=tr.cfg.anchor_track_width)
-        aligned = "" if a.aligned is None else f", {a.aligned} frames aligned"
+        extra = "" if a.aligned is None else f", {a.aligned} frames aligned"
         if a.bundled is not None:
-            aligned += ", bundle-adjusted: " + "; ".join(
+            extra += ", bundle-adjusted: " + "; ".join(
                 f"{b['tracks']} tracks, {b['start_px']:.2f} -> {b['final_px']:.2f} px" for b in a.bundled)
         size = "x".join(map(str, a.track_size))
-        how = f"odometry of {len(a.T_wc)} frames at {size} ({a.keyframes} keyframes, {a.lost} lost{aligned})"
+        how = f"odometry of {len(a.T_wc)} frames at {size} ({a.keyframes} keyframes, {a.lost} lost{extra})"
     if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
         weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
         log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
