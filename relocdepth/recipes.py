@@ -56,8 +56,11 @@ RECIPES: dict[str, dict[str, Any]] = {
     # reached rung 2 within 30-34 minutes on two seeds, where the bootstrap alone stayed at rung 0
     # (README, Quality trial 25). With --anchor-align-step 400 its anchors were 22-26 % closer there
     # and the relative pose better at 9 of 10 checkpoints (one seed; trial 26): not yet measured on
-    # the demo scene, so not part of the recipe.
-    "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250},
+    # the demo scene, so not part of the recipe. Bundle-adjusted (anchor_bundle) its anchors were
+    # 15-43 % closer on the walk-through and 21-24 % on the demo scene, and the network's absolute
+    # and relative translation better at most checkpoints of both (two seeds and one; trial 29).
+    "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250,
+                     "anchor_bundle": True},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
     # into one world (built once its relative poses are right, step 600, then every 300 steps).
     # No hand-over within a CPU run: the bootstrap's warps and the anchors stay for 100000 steps.
