@@ -75,7 +75,7 @@ class VOConfig:
     # Refine each sequence's odometry by bundle adjustment over its multi-frame tracks
     # (relocdepth.ba), before any alignment. On the real walk-through (192x128, a depth network at
     # AbsRel ~0.2) ATE 0.223-0.252 -> 0.142-0.147 m; on the demo scene (128x96, true depth) 0.035 /
-    # 0.046 -> 0.012 / 0.010 m per sequence (README, Quality: trial 29).
+    # 0.046 -> 0.010 / 0.007 m per sequence (README, Quality: trial 29).
     bundle: bool = False
 
 
