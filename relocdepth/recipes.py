@@ -57,7 +57,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     # (README, Quality trial 25). With --anchor-align-step 400 its anchors were 22-26 % closer there
     # and the relative pose better at 9 of 10 checkpoints (one seed; trial 26): not yet measured on
     # the demo scene, so not part of the recipe. Bundle-adjusted (anchor_bundle) its anchors were
-    # 15-43 % closer on the walk-through and 21-24 % on the demo scene, and the network's absolute
+    # 15-43 % closer on the walk-through and 21-30 % on the demo scene, and the network's absolute
     # and relative translation better at most checkpoints of both (two seeds and one; trial 29).
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250,
                      "anchor_bundle": True},
