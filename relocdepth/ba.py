@@ -129,29 +129,24 @@ def build_tracks(images: Sequence[np.ndarray], cfg: TrackConfig = TrackConfig(),
 
 
 def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation vectors ``(N, 3)`` (radians) to matrices ``(N, 3, 3)``."""
-    r = np.asarray(r, np.float64)
-    theta = np.linalg.norm(r, axis=1)[:, None, None]
-    small = theta < 1e-12
-    safe = np.where(small, 1.0, theta)
-    W = _skew(r / safe[:, :, 0])
-    R = np.eye(3) + np.sin(safe) * W + (1 - np.cos(safe)) * (W @ W)
-    return np.where(small, np.eye(3) + _skew(r), R)
+    """Rotation vectors ``(N, 3)`` (radians) to matrices ``(N, 3, 3)``, float64
+    (:func:`relocdepth.geometry.rotations.so3_exp` on NumPy arrays)."""
+    import torch
+
+    from relocdepth.geometry.rotations import so3_exp
+
+    return so3_exp(torch.from_numpy(np.asarray(r, np.float64).reshape(-1, 3))).numpy()
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(N, 3, 3)`` to rotation vectors ``(N, 3)`` (radians; exact for small
-    angles too, which OpenCV's Rodrigues rounds to 0 below 1e-5 rad)."""
-    import cv2
+    """Rotation matrices ``(N, 3, 3)`` to rotation vectors ``(N, 3)`` (radians), float64; exact for
+    small angles too, which OpenCV's Rodrigues rounds to 0 below 1e-5 rad
+    (:func:`relocdepth.geometry.rotations.so3_log` on NumPy arrays)."""
+    import torch
 
-    R = np.asarray(R, np.float64).reshape(-1, 3, 3)
-    v = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    s = np.linalg.norm(v, axis=1)  # sin(angle)
-    c = (np.trace(R, axis1=1, axis2=2) - 1) / 2  # cos(angle)
-    out = v * np.where(s > 1e-12, np.arctan2(s, c) / np.maximum(s, 1e-300), 1.0)[:, None]
-    for i in np.flatnonzero(c < -0.99):  # near half a turn the axis is in the symmetric part
-        out[i] = cv2.Rodrigues(R[i])[0].ravel()
-    return out
+    from relocdepth.geometry.rotations import so3_log
+
+    return so3_log(torch.from_numpy(np.asarray(R, np.float64).reshape(-1, 3, 3))).numpy()
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
