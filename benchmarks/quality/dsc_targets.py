@@ -12,6 +12,7 @@ frames 5 apart vs the identity) every 100 steps. Targets and depth:
 
     python benchmarks/quality/dsc_targets.py SHARDS --targets gt --minutes 20
     python benchmarks/quality/dsc_targets.py SHARDS --targets vo --checkpoint RUN --minutes 20
+    python benchmarks/quality/dsc_targets.py SHARDS --targets gt --size 192x128 --device cuda
 """
 
 from __future__ import annotations
@@ -45,17 +46,21 @@ def main() -> None:
     ap.add_argument("--checkpoint", help="a trained run (its depth network) for --targets vo")
     ap.add_argument("--minutes", type=float, default=20.0)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--size", help="train and score at WxH (images and depth resized; K follows)")
+    ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = ap.parse_args()
     if args.targets == "vo" and not args.checkpoint:
         ap.error("--targets vo needs --checkpoint")
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
 
-    seqs = V.load(args.shards, 10**9)
+    size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
+    dev = torch.device(args.device)
+    seqs = [V._resize(s, size) for s in V.load(args.shards, 10**9)]
     ds = open_dataset(args.shards)
     te = sorted(ds.frames("test"), key=lambda r: (r.sequence, r.frame))
-    test = V.Sequence("test", [ds.read_image(r) for r in te], te[0].intrinsics,
-                      np.stack([ds.read_pose(r) for r in te]), [ds.read_depth(r) for r in te])
+    test = V._resize(V.Sequence("test", [ds.read_image(r) for r in te], te[0].intrinsics,
+                                np.stack([ds.read_pose(r) for r in te]), [ds.read_depth(r) for r in te]), size)
     if args.targets == "vo":
         maps, _ = V.network_depth(args.checkpoint, [*seqs, test])  # one load of the checkpoint
         depths, depth_te = maps[:-1], maps[-1]
@@ -64,15 +69,15 @@ def main() -> None:
         depths, depth_te = [s.depth_gt for s in seqs], test.depth_gt
         T_target = np.concatenate([s.T_gt for s in seqs])
     T_gt = np.concatenate([s.T_gt for s in seqs])
-    I_tr, I_te = as_tensor([im for s in seqs for im in s.images]), as_tensor(test.images)
-    D_tr = torch.from_numpy(np.stack([d for ds_ in depths for d in ds_]))[:, None].float()
-    D_te = torch.from_numpy(np.stack(depth_te))[:, None].float()
-    K = torch.from_numpy(seqs[0].intrinsics.K()).float()
-    T_t = torch.from_numpy(T_target).float()
+    I_tr, I_te = as_tensor([im for s in seqs for im in s.images]).to(dev), as_tensor(test.images).to(dev)
+    D_tr = torch.from_numpy(np.stack([d for ds_ in depths for d in ds_]))[:, None].float().to(dev)
+    D_te = torch.from_numpy(np.stack(depth_te))[:, None].float().to(dev)
+    K = torch.from_numpy(seqs[0].intrinsics.K()).float().to(dev)
+    T_t = torch.from_numpy(T_target).float().to(dev)
     q_t = geo.quat_from_matrix(T_t[:, :3, :3])
     D_med = torch.stack([d[d > 0].median() for d in D_tr])
 
-    net = DSCNet()
+    net = DSCNet().to(dev)
     opt = torch.optim.Adam(net.parameters(), lr=3e-4)
 
     def cells(I: torch.Tensor, D: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -84,7 +89,7 @@ def main() -> None:
             out = [geo.pose_matrix(*geo.median_cell_pose(*cells(I[i:i + 50], D[i:i + 50])))
                    for i in range(0, len(I), 50)]
         net.train()
-        return torch.cat(out).double().numpy()
+        return torch.cat(out).double().cpu().numpy()
 
     def score(step: int) -> None:
         rep, _, _ = pose_report(predict(I_tr, D_tr), T_gt, predict(I_te, D_te), test.T_gt,
@@ -98,7 +103,7 @@ def main() -> None:
     g = torch.Generator().manual_seed(args.seed)
     t0, step = time.time(), 0
     while time.time() - t0 < args.minutes * 60:
-        idx = torch.randint(0, len(I_tr), (18,), generator=g)
+        idx = torch.randint(0, len(I_tr), (18,), generator=g).to(dev)
         q, c = cells(I_tr[idx], D_tr[idx])
         loss = ((c - T_t[idx, None, :3, 3]).norm(dim=-1) / D_med[idx, None]).mean() \
             + geo.quat_angle(q, q_t[idx, None].expand_as(q)).mean()
