@@ -77,6 +77,7 @@ class Anchors:
     # vo anchors refined by bundle adjustment (VOConfig.bundle): per sequence its tracks,
     # observations and median reprojection error before / after (None: not adjusted)
     bundled: list[dict] | None = None
+    pnp: int = 0  # vo anchors: the frames whose pair PnP measured (VOConfig.pnp_below)
 
 
 def unlinked_sequences(regs: list[Any]) -> list[int]:
@@ -148,7 +149,8 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
     unlinked = unlinked_sequences(w.regs)
     return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
                    [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked,
-                   aligned=w.aligned if cfg.align else None, track_size=track, bundled=w.bundled)
+                   aligned=w.aligned if cfg.align else None, track_size=track, bundled=w.bundled,
+                   pnp=sum(len(t.pnp) for t in w.trajs))
 
 
 class _Upsampled:

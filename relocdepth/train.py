@@ -132,6 +132,10 @@ class TrainConfig:
     # 0.223-0.252 m to 0.142-0.147 m with the depth network's depth at steps 150-400 (README,
     # Quality: trial 29).
     anchor_bundle: bool = False
+    # "vo": a pair of frames that KLT tracks at fewer than this many points (a fast turn) is measured
+    # by PnP on SIFT and KLT matches lifted by the depth network's depth instead of by the essential
+    # matrix of its tracks (relocdepth.vo.VOConfig.pnp_below; 0: never).
+    anchor_pnp_below: int = 0
     # "vo": the odometry tracks the stored images down-sized to at most this width (0: the training
     # images), with the depth network's depth upsampled to them.
     anchor_track_width: int = 0
@@ -201,6 +205,10 @@ class TrainConfig:
             raise UserError(f"--anchor-align-step must be >= 0, not {self.anchor_align_step}")
         if self.anchor_bundle and self.anchor != "vo":
             raise UserError("--anchor-bundle needs --anchor vo (it refines the anchors' odometry)")
+        if self.anchor_pnp_below and self.anchor != "vo":
+            raise UserError("--anchor-pnp-below needs --anchor vo (it measures the anchors' odometry)")
+        if self.anchor_pnp_below < 0:
+            raise UserError(f"--anchor-pnp-below must be >= 0 tracks, not {self.anchor_pnp_below}")
         if self.anchor_track_width and self.anchor != "vo":
             raise UserError("--anchor-track-width needs --anchor vo (it is where the anchors' odometry tracks)")
         if self.anchor_track_width < 0:
@@ -725,8 +733,11 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         align = tr.cfg.anchor_align_step is not None and state.step >= tr.cfg.anchor_align_step
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size,
-                            VOConfig(align=align, bundle=tr.cfg.anchor_bundle), track_width=tr.cfg.anchor_track_width)
+                            VOConfig(align=align, bundle=tr.cfg.anchor_bundle, pnp_below=tr.cfg.anchor_pnp_below),
+                            track_width=tr.cfg.anchor_track_width)
         extra = "" if a.aligned is None else f", {a.aligned} frames aligned"
+        if tr.cfg.anchor_pnp_below:
+            extra += f", {a.pnp} by PnP"
         if a.bundled is not None:
             extra += ", bundle-adjusted: " + "; ".join(
                 f"{b['tracks']} tracks, {b['start_px']:.2f} -> {b['final_px']:.2f} px" for b in a.bundled)
@@ -745,7 +756,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
                  registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
-                 turn_measured=a.turn_measured, aligned=a.aligned, bundled=a.bundled,
+                 turn_measured=a.turn_measured, aligned=a.aligned, bundled=a.bundled, pnp=a.pnp,
                  track_size=None if a.track_size is None else list(a.track_size), used=used)
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -38,7 +38,9 @@ from relocdepth.twoview import (
     BOOTSTRAP_MIN_PARALLAX_PX,
     as_grey,
     bootstrap_pair,
+    detect_corners,
     relative_pose_essential,
+    track_points,
 )
 
 LINK_MATCHERS = ("sift", "klt")
@@ -77,6 +79,12 @@ class VOConfig:
     # AbsRel ~0.2) ATE 0.223-0.252 -> 0.142-0.147 m; on the demo scene (128x96, true depth) 0.035 /
     # 0.046 -> 0.010 / 0.007 m per sequence (README, Quality: trial 29).
     bundle: bool = False
+    # A pair that KLT tracks at fewer than this many points (a fast turn: on the real walk-through
+    # at 192x128 a 19 deg turn keeps 14 tracks, and their essential matrix is 7 deg off) is measured
+    # instead by PnP: SIFT and KLT matches, image a's points lifted by its depth (depth_pair_pose).
+    # 0: never.
+    pnp_below: int = 0
+    pnp_min_inliers: int = 12  # fewer PnP inliers: the essential matrix's pose is kept
 
 
 @dataclass
@@ -84,22 +92,25 @@ class PairPose:
     """``T (4, 4)`` = ``T_{b<-a}`` with its translation in depth units; whether the pair has a
     measured translation (enough parallax and depth at its points); whether the pair worked; the
     baseline in pixels of image a (focal length / median depth of the points in baselines; 0
-    when not measured)."""
+    when not measured); whether PnP on the depth measured it (:func:`depth_pair_pose`)."""
 
     T: np.ndarray
     measured: bool
     ok: bool
     baseline_px: float = 0.0
+    pnp: bool = False
 
 
 @dataclass
 class Trajectory:
     """Poses ``T_wc (N, 4, 4)`` (world = first frame), the keyframe indices, the frames whose
-    pose could not be measured (they repeat the previous pose)."""
+    pose could not be measured (they repeat the previous pose), the frames whose pose PnP measured
+    (``VOConfig.pnp_below``)."""
 
     T_wc: np.ndarray
     keyframes: list[int]
     lost: list[int]
+    pnp: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -136,6 +147,13 @@ def pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np
               depth_a: np.ndarray, cfg: VOConfig = VOConfig()) -> PairPose:
     """``T_{b<-a}`` of two images with the translation's length from ``depth_a (H, W)`` (image a's
     depth at its pixels, any units; <= 0 = unknown)."""
+    if cfg.pnp_below > 0:
+        grey_a = as_grey(image_a)
+        tracked = track_points(grey_a, as_grey(image_b), detect_corners(grey_a))
+        if len(tracked[0]) < cfg.pnp_below:
+            p = depth_pair_pose(image_a, image_b, K_a, K_b, depth_a, cfg, tracked)
+            if p.ok:
+                return p
     T, points, ok = bootstrap_pair(image_a, image_b, np.asarray(K_a), np.asarray(K_b),
                                    min_parallax_px=cfg.min_parallax_px)
     T = T.astype(np.float64)
@@ -149,6 +167,43 @@ def pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np
     T[:3, 3] *= float(np.median(ratio))
     baseline_px = float(K_a[0, 0] / np.median(points[has, 2]))
     return PairPose(T, True, True, baseline_px)
+
+
+def depth_pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+                    depth_a: np.ndarray, cfg: VOConfig = VOConfig(),
+                    tracked: tuple[np.ndarray, np.ndarray] | None = None) -> PairPose:
+    """``T_{b<-a}`` by PnP: SIFT matches and KLT tracks (``tracked``: already tracked ``(pa, pb)``)
+    from a to b, the points of a lifted to 3-D by ``depth_a`` (any units, <= 0 unknown), EPnP in
+    RANSAC (``cfg.reprojection_px`` in b), Levenberg-Marquardt on the inliers. Unlike the
+    essential matrix it needs no baseline, and with the depth a few matches fix the rotation of a
+    fast turn; its translation is in the depth's units and as good as the depth. Not ``ok`` with
+    fewer than ``cfg.pnp_min_inliers`` inliers."""
+    import cv2
+
+    fail = PairPose(np.eye(4), False, False)
+    if tracked is None:
+        grey_a = as_grey(image_a)
+        tracked = track_points(grey_a, as_grey(image_b), detect_corners(grey_a))
+    sa, sb = sift_matches(image_a, image_b, cfg.sift_ratio)
+    pa = np.concatenate([tracked[0], sa]).astype(np.float64)
+    pb = np.concatenate([tracked[1], sb]).astype(np.float64)
+    z = sample_depth(depth_a, pa)
+    has = np.isfinite(z)
+    if has.sum() < max(cfg.pnp_min_inliers, 4):
+        return fail
+    Ka, Kb = np.asarray(K_a, np.float64), np.asarray(K_b, np.float64)
+    X = np.c_[(pa[has] - Ka[:2, 2]) / np.diag(Ka)[:2], np.ones(has.sum())] * z[has, None]
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, pb[has], Kb, None, reprojectionError=cfg.reprojection_px,
+                                                 iterationsCount=500, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inliers is None or len(inliers) < cfg.pnp_min_inliers:
+        return fail
+    inl = inliers.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(X[inl], pb[has][inl], Kb, None, rvec, tvec)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
+    baseline_px = float(Ka[0, 0] * np.linalg.norm(T[:3, 3]) / np.median(X[inl, 2]))
+    return PairPose(T, True, True, baseline_px, pnp=True)
 
 
 def sift_matches(image_a: np.ndarray, image_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -213,7 +268,7 @@ def chain(images: Sequence[np.ndarray], K: np.ndarray, depth: DepthSource,
     """
     n = len(images)
     T_wc = np.repeat(np.eye(4)[None], n, axis=0)
-    kf, keyframes, lost = 0, [0], []
+    kf, keyframes, lost, pnp = 0, [0], [], []
     kf_depth = depth(0) if n else None
     for j in range(1, n):
         p = pair_pose(images[kf], images[j], K, K, kf_depth, cfg)
@@ -227,11 +282,13 @@ def chain(images: Sequence[np.ndarray], K: np.ndarray, depth: DepthSource,
             lost.append(j)
         else:
             T_wc[j] = T_wc[kf] @ np.linalg.inv(p.T)
+            if p.pnp:
+                pnp.append(j)
         if (p.measured and p.baseline_px >= cfg.keyframe_baseline_px) or not p.ok:
             kf = j
             keyframes.append(kf)
             kf_depth = depth(kf)
-    return Trajectory(T_wc, keyframes, lost)
+    return Trajectory(T_wc, keyframes, lost, pnp)
 
 
 def robust_mean_transform(T: np.ndarray, inlier_deg: float) -> tuple[np.ndarray, np.ndarray]:

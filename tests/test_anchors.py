@@ -115,7 +115,8 @@ def test_anchor_schedule_and_options() -> None:
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked",
                                "anchor_bundle": True})
     for field, option, value in (("anchor_align_step", "--anchor-align-step", 300),
-                                 ("anchor_track_width", "--anchor-track-width", 640)):
+                                 ("anchor_track_width", "--anchor-track-width", 640),
+                                 ("anchor_pnp_below", "--anchor-pnp-below", 50)):
         with pytest.raises(UserError, match=f"{option} needs --anchor vo"):
             TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked",
                                    field: value})
@@ -316,6 +317,23 @@ def test_trainer_bundle_adjusts_the_anchors_odometry_when_asked(synth_shards: Pa
         seqs = built[0]["bundled"]
         assert len(seqs) == len(built[0]["registration"]) + 1
         assert all(b["tracks"] > 0 and b["final_px"] <= b["start_px"] for b in seqs)
+
+
+def test_trainer_measures_pairs_with_few_tracks_by_pnp_when_asked(synth_shards: Path, tmp_path: Path) -> None:
+    """``anchor_pnp_below``: pairs that KLT tracks at fewer points than that are measured by PnP on
+    the depth network's depth; the anchors event counts them (none when off)."""
+    from relocdepth.data import ImageFrames
+    from relocdepth.train import train
+
+    counts = {}
+    for below in (0, 10**6):  # never; every pair
+        run = tmp_path / f"run-{below}"
+        train(synth_shards, run, _cfg(max_steps=2, anchor_pnp_below=below))
+        log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+        counts[below] = [d["pnp"] for d in log if d.get("event") == "anchors"]
+    n = len(ImageFrames.open(synth_shards).frames)
+    assert counts[0] == [0]
+    assert len(counts[10**6]) == 1 and n // 2 < counts[10**6][0] < n  # not each sequence's first frame
 
 
 def test_trainer_tracks_the_anchors_odometry_at_the_width_asked(synth_shards_320: Path, tmp_path: Path) -> None:

@@ -8,9 +8,12 @@ import pytest
 
 from relocdepth.eval_geometry import apply_sim3, rotation_angle_deg, umeyama
 from relocdepth.synth import SEVEN_SCENES_INTRINSICS, SynthConfig, build_scene, camera_paths, render
+from relocdepth.twoview import as_grey, detect_corners, track_points
 from relocdepth.vo import (
+    VOConfig,
     align_chain,
     chain,
+    depth_pair_pose,
     pair_pose,
     register,
     robust_mean_transform,
@@ -132,10 +135,64 @@ def test_wide_pair_pose_is_metric_across_wide_baselines(frame: int, move: tuple 
     assert np.linalg.norm(p.T[:3, 3] - truth[:3, 3]) < 0.03, (p.T[:3, 3], truth[:3, 3])
 
 
+@pytest.fixture(scope="module")
+def fast_turns() -> list[tuple]:
+    """Pairs of the demo scene's first frame and a view turned 20-25 deg about a 4-6 cm move (a
+    head turning): (image a, depth a, image b, T_{b<-a})."""
+    cfg = SynthConfig(seed=0, frames=1, width=INTR.width, height=INTR.height)
+    scene = build_scene(cfg.seed, cfg)
+    T_a = camera_paths(cfg)["seq-01"][0]
+    img_a, depth_a = render(scene, T_a, INTR)
+    out = []
+    for turn, move in (((0.0, 20.0, 0.0), (0.05, 0.0, 0.0)), ((5.0, 20.0, 0.0), (0.04, 0.02, 0.0)),
+                       ((0.0, -22.0, 3.0), (0.06, 0.0, 0.0))):
+        T_b = T_a @ _rigid(turn, move)
+        out.append((img_a, depth_a, render(scene, T_b, INTR)[0], np.linalg.inv(T_b) @ T_a))
+    return out
+
+
+def _pose_errors(T: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    return rotation_angle_deg(T[:3, :3].T @ truth[:3, :3]), float(np.linalg.norm(T[:3, 3] - truth[:3, 3]))
+
+
+def test_depth_pair_pose_measures_fast_turns_the_essential_matrix_misses(fast_turns: list) -> None:
+    for img_a, depth_a, img_b, truth in fast_turns:
+        essential = pair_pose(img_a, img_b, INTR.K(), INTR.K(), depth_a)
+        assert _pose_errors(essential.T, truth)[0] > 3.0  # the case this is for
+        p = depth_pair_pose(img_a, img_b, INTR.K(), INTR.K(), depth_a)
+        assert p.ok and p.measured
+        r_err, t_err = _pose_errors(p.T, truth)
+        assert r_err < 1.0 and t_err < 0.015, (r_err, t_err)
+        # the translation is in the depth's units, the rotation does not depend on them
+        p3 = depth_pair_pose(img_a, img_b, INTR.K(), INTR.K(), 3.0 * depth_a)
+        assert rotation_angle_deg(p3.T[:3, :3].T @ p.T[:3, :3]) < 0.1
+        assert np.allclose(p3.T[:3, 3], 3.0 * p.T[:3, 3], atol=1e-3)
+        assert abs(p.baseline_px - INTR.fx * np.linalg.norm(truth[:3, 3]) / np.median(depth_a)) < 1.0
+
+
+def test_pair_pose_takes_pnp_only_for_pairs_with_few_tracks(fast_turns: list, rendered: dict) -> None:
+    K = INTR.K()
+    img_a, depth_a, img_b, truth = fast_turns[0]
+    tracks = len(track_points(as_grey(img_a), as_grey(img_b), detect_corners(as_grey(img_a)))[0])
+    few = pair_pose(img_a, img_b, K, K, depth_a, VOConfig(pnp_below=tracks + 1))
+    assert np.allclose(few.T, depth_pair_pose(img_a, img_b, K, K, depth_a).T)
+    assert _pose_errors(few.T, truth)[0] < 1.0
+    enough = pair_pose(img_a, img_b, K, K, depth_a, VOConfig(pnp_below=tracks))
+    assert np.allclose(enough.T, pair_pose(img_a, img_b, K, K, depth_a).T)
+    # PnP with too few inliers keeps the essential matrix's pose
+    kept = pair_pose(img_a, img_b, K, K, depth_a, VOConfig(pnp_below=tracks + 1, pnp_min_inliers=10**6))
+    assert np.allclose(kept.T, enough.T)
+    # neighbouring frames track well: their pose is the essential matrix's
+    a, b, d = rendered["img_a"][0], rendered["img_a"][1], rendered["depth_a"][0]
+    n = len(track_points(as_grey(a), as_grey(b), detect_corners(as_grey(a)))[0])
+    assert n > 60
+    assert np.allclose(pair_pose(a, b, K, K, d, VOConfig(pnp_below=60)).T, pair_pose(a, b, K, K, d).T)
+
+
 def test_pairs_without_texture_fail() -> None:
     blank = np.full((INTR.height, INTR.width, 3), 128, np.uint8)
     depth = np.ones((INTR.height, INTR.width), np.float32)
-    for pose in (pair_pose, wide_pair_pose):
+    for pose in (pair_pose, wide_pair_pose, depth_pair_pose):
         p = pose(blank, blank, INTR.K(), INTR.K(), depth)
         assert not p.ok and not p.measured and np.allclose(p.T, np.eye(4))
 

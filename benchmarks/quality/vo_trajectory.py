@@ -209,12 +209,15 @@ def main() -> None:
                     help="also refine each sequence's odometry by direct alignment (rows marked 'aligned')")
     ap.add_argument("--bundle", action="store_true",
                     help="also refine each sequence's odometry by bundle adjustment (rows marked 'bundled')")
+    ap.add_argument("--pnp-below", type=int, default=VOConfig.pnp_below,
+                    help="pairs KLT tracks at fewer points than this are measured by PnP on the depth")
     ap.add_argument("--json", type=Path, help="also write the figures here")
     a = ap.parse_args()
     size = tuple(int(v) for v in a.size.lower().split("x")) if a.size else None
     seqs = [_resize(s, size) for s in load(a.data, a.frames)]
     cfg = VOConfig(min_parallax_px=a.min_parallax, keyframe_baseline_px=a.keyframe_baseline,
-                   links_per_frame=a.links, link_matcher=a.link_matcher, query_every=a.query_every)
+                   links_per_frame=a.links, link_matcher=a.link_matcher, query_every=a.query_every,
+                   pnp_below=a.pnp_below)
     print(f"{a.data}: {', '.join(f'{s.name} ({len(s.images)})' for s in seqs)} at "
           f"{seqs[0].intrinsics.width}x{seqs[0].intrinsics.height}; {cfg}")
     rows = {}
