@@ -7,7 +7,9 @@ of the keyframe (the median, over the pair's triangulated points, of depth at th
 point's depth in baselines, as :func:`relocdepth.method.two_view_poses` does in training). The
 first pair with a measured translation (over a minimum baseline) becomes the next keyframe. Every translation is thus in the
 depth's units (metres for ground-truth depth, network units for a trained depth network), so the
-chain needs no scale propagation. With ``VOConfig.bundle`` the poses are then refined jointly by
+chain needs no scale propagation. With ``VOConfig.pnp_below`` a pair that KLT tracks at few points
+(a fast turn) is measured instead by PnP on the keyframe's depth (:func:`depth_pair_pose`).
+With ``VOConfig.bundle`` the poses are then refined jointly by
 bundle adjustment over tracks that last several frames (:mod:`relocdepth.ba`). With
 ``VOConfig.align`` each frame's pose is then refined by
 direct alignment to the frame before it (:func:`align_chain`, :mod:`relocdepth.photoalign`): it
@@ -146,7 +148,8 @@ def sample_depth(depth: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
               depth_a: np.ndarray, cfg: VOConfig = VOConfig()) -> PairPose:
     """``T_{b<-a}`` of two images with the translation's length from ``depth_a (H, W)`` (image a's
-    depth at its pixels, any units; <= 0 = unknown)."""
+    depth at its pixels, any units; <= 0 = unknown). A pair that KLT tracks at fewer than
+    ``cfg.pnp_below`` points is measured by :func:`depth_pair_pose` where that works."""
     if cfg.pnp_below > 0:
         grey_a = as_grey(image_a)
         tracked = track_points(grey_a, as_grey(image_b), detect_corners(grey_a))
