@@ -60,9 +60,11 @@ RECIPES: dict[str, dict[str, Any]] = {
     # 15-43 % closer on the walk-through and 21-30 % on the demo scene, and the network's absolute
     # and relative translation better at most checkpoints of both (two seeds and one; trial 29).
     # Pairs that KLT tracks at fewer than 50 points (fast turns) measured by PnP on the depth
-    # (anchor_pnp_below): on the walk-through the anchors' rotation drift fell from 8-9 to 2-4 deg,
-    # and the network's absolute pose from 0.17-0.19 m / 7 deg to 0.12-0.15 m / 3-4 deg (trial 30).
-    # The demo scene's anchors are unchanged: none of its pairs has so few tracks.
+    # (anchor_pnp_below): on the walk-through the anchors' rotation error fell from 7-9 to 2-5 deg
+    # and the network's rotation by about half at every checkpoint of two seeds; its translation
+    # was better on one seed and worse on the other from step 450; the first seed reached rung 3
+    # at step 1250 (README, Quality: trial 30). The demo scene's anchors are unchanged: none of
+    # its pairs has so few tracks.
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250,
                      "anchor_bundle": True, "anchor_pnp_below": 50},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
