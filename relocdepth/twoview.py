@@ -207,7 +207,8 @@ BOOTSTRAP_FAR_BASELINES = 1000.0
 def bootstrap_pair(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
                    n_points: int = BOOTSTRAP_POINTS, ransac_px: float = 1.0,
                    min_parallax_px: float = BOOTSTRAP_MIN_PARALLAX_PX,
-                   cfg: TrackConfig = TrackConfig()) -> tuple[np.ndarray, np.ndarray, bool]:
+                   cfg: TrackConfig = TrackConfig(),
+                   tracked: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
     """Relative pose and triangulated depths of a training pair, for the essential-matrix bootstrap.
 
     The two images may have different intrinsics (training crops and scales each image), so the
@@ -221,13 +222,18 @@ def bootstrap_pair(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_
     A pair whose inliers move less than ``min_parallax_px`` (median, pixels of image b) beyond what
     the rotation explains is *rotation only*: its translation is too small to measure, so ``T``
     carries the rotation and a zero translation, ``points`` are all NaN, and ``ok`` is True.
+
+    ``tracked``: the pair's tracks ``(pa, pb)`` when the caller has already tracked them
+    (:func:`track_points` from :func:`detect_corners` with ``cfg``).
     """
     import cv2
 
     T = np.eye(4, dtype=np.float32)
     points = np.full((n_points, 3), np.nan, dtype=np.float32)
-    grey_a, grey_b = as_grey(image_a), as_grey(image_b)
-    pa, pb = track_points(grey_a, grey_b, detect_corners(grey_a, cfg), cfg)
+    if tracked is None:
+        grey_a = as_grey(image_a)
+        tracked = track_points(grey_a, as_grey(image_b), detect_corners(grey_a, cfg), cfg)
+    pa, pb = tracked
     if len(pa) < 8:
         return T, points, False
 

@@ -150,6 +150,7 @@ def pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np
     """``T_{b<-a}`` of two images with the translation's length from ``depth_a (H, W)`` (image a's
     depth at its pixels, any units; <= 0 = unknown). A pair that KLT tracks at fewer than
     ``cfg.pnp_below`` points is measured by :func:`depth_pair_pose` where that works."""
+    tracked = None  # tracked here only when the count decides (bootstrap_pair tracks otherwise)
     if cfg.pnp_below > 0:
         grey_a = as_grey(image_a)
         tracked = track_points(grey_a, as_grey(image_b), detect_corners(grey_a))
@@ -158,7 +159,7 @@ def pair_pose(image_a: np.ndarray, image_b: np.ndarray, K_a: np.ndarray, K_b: np
             if p.ok:
                 return p
     T, points, ok = bootstrap_pair(image_a, image_b, np.asarray(K_a), np.asarray(K_b),
-                                   min_parallax_px=cfg.min_parallax_px)
+                                   min_parallax_px=cfg.min_parallax_px, tracked=tracked)
     T = T.astype(np.float64)
     has = np.isfinite(points[:, 2])
     if not ok or not has.any():
