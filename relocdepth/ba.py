@@ -83,13 +83,16 @@ class Adjusted:
 
 def _epipolar_inliers(a: np.ndarray, b: np.ndarray, keep: np.ndarray, threshold_px: float) -> np.ndarray:
     """Which of the moves ``a -> b (N, 2)`` to keep: those in ``keep`` that fit the pair's
-    fundamental matrix (MAGSAC++, ``threshold_px``); all of them when too few to fit one."""
+    fundamental matrix (MAGSAC++, ``threshold_px``); all of them when none can be fitted."""
     import cv2
 
     out = keep.copy()
     if threshold_px <= 0 or keep.sum() < 15:
         return out
-    F, mask = cv2.findFundamentalMat(a[keep], b[keep], cv2.USAC_MAGSAC, threshold_px, 0.999)
+    try:
+        F, mask = cv2.findFundamentalMat(a[keep], b[keep], cv2.USAC_MAGSAC, threshold_px, 0.999)
+    except cv2.error:  # MAGSAC++ asserts on some sets of moves (repeated points): none fitted
+        return out
     if F is not None and mask is not None:
         out[np.flatnonzero(keep)] = mask.ravel() > 0
     return out

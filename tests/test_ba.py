@@ -218,3 +218,21 @@ def test_track_steps_off_the_pairs_epipolar_geometry_are_dropped() -> None:
     few = np.zeros(170, bool)
     few[:10] = True
     assert (_epipolar_inliers(a.astype(np.float32), b.astype(np.float32), few, 1.0) == few).all()
+
+
+def test_tracks_go_on_where_no_fundamental_matrix_can_be_fitted(rendered: dict, monkeypatch) -> None:
+    """OpenCV's MAGSAC++ asserts (cv2.error) on some sets of moves, e.g. KLT tracks that ran into
+    one another: the check keeps every move then, and the tracks go on as without it."""
+    from relocdepth.ba import _epipolar_inliers
+
+    def asserts(*args, **kwargs):
+        raise cv2.error("(-215:Assertion failed) !model.empty() in function 'setModelParameters'")
+
+    unchecked = build_tracks(rendered["images"][:6], epipolar_px=0.0)
+    monkeypatch.setattr(cv2, "findFundamentalMat", asserts)
+    a = np.random.default_rng(0).uniform(0, 90, (40, 2)).astype(np.float32)
+    keep = np.ones(40, bool)
+    keep[3] = False
+    assert (_epipolar_inliers(a, a + 2, keep, 1.0) == keep).all()
+    tr = build_tracks(rendered["images"][:6])
+    assert np.array_equal(tr.track, unchecked.track) and np.allclose(tr.xy, unchecked.xy)
