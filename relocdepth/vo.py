@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from relocdepth.ba import BAConfig
 from relocdepth.errors import UserError
 from relocdepth.eval_geometry import chordal_mean_rotation, rotation_angle_deg
 from relocdepth.metrics import thumbnail
@@ -81,6 +82,7 @@ class VOConfig:
     # AbsRel ~0.2) ATE 0.223-0.252 -> 0.142-0.147 m; on the demo scene (128x96, true depth) 0.035 /
     # 0.046 -> 0.010 / 0.007 m per sequence (README, Quality: trial 29).
     bundle: bool = False
+    bundle_cfg: BAConfig = BAConfig()  # the bundle adjustment's tracks and fit
     # A pair that KLT tracks at fewer than this many points (a fast turn: on the real walk-through
     # at 192x128 a 19 deg turn keeps 14 tracks, and their essential matrix is 7 deg off) is measured
     # instead by PnP: SIFT and KLT matches, image a's points lifted by its depth (depth_pair_pose).
@@ -395,7 +397,7 @@ def world_trajectory(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndar
     if cfg.bundle:
         from relocdepth.ba import bundle_adjust
 
-        adjusted = [bundle_adjust(im, k, tr.T_wc, d) for tr, im, k, d in zip(trajs, images, K, depth)]
+        adjusted = [bundle_adjust(im, k, tr.T_wc, d, cfg.bundle_cfg) for tr, im, k, d in zip(trajs, images, K, depth)]
         trajs = [replace(tr, T_wc=a.T_wc) for tr, a in zip(trajs, adjusted)]
         bundled = [a.summary() for a in adjusted]
     aligned = 0

@@ -187,6 +187,11 @@ def test_world_trajectory_refines_each_sequence_when_asked(rendered: dict) -> No
     assert w.bundled[0]["final_px"] < w.bundled[0]["start_px"]
     assert np.allclose(w.world[0], bundle_adjust(images, K, chain(images, K, depth).T_wc, depth).T_wc)
     assert world_trajectory([images], [K], [depth], VOConfig()).bundled is None
+    chained = BAConfig(first_view_px=0.0)  # ... with the fit it is given
+    w = world_trajectory([images], [K], [depth], VOConfig(bundle=True, bundle_cfg=chained))
+    expected = bundle_adjust(images, K, chain(images, K, depth).T_wc, depth, chained).T_wc
+    assert np.allclose(w.world[0], expected)
+    assert not np.allclose(expected, bundle_adjust(images, K, chain(images, K, depth).T_wc, depth).T_wc)
 
 
 def test_nothing_to_fit_returns_the_poses_as_given() -> None:

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from relocdepth import eval_geometry as EG
+from relocdepth.ba import BAConfig
 from relocdepth import metrics as M
 from relocdepth.camera import Intrinsics
 from relocdepth.dataset import DEPTH_SCALE, open_dataset
@@ -209,6 +210,9 @@ def main() -> None:
                     help="also refine each sequence's odometry by direct alignment (rows marked 'aligned')")
     ap.add_argument("--bundle", action="store_true",
                     help="also refine each sequence's odometry by bundle adjustment (rows marked 'bundled')")
+    ap.add_argument("--first-view-px", type=float, default=BAConfig.first_view_px,
+                    help="--bundle: each track step tracked again from the track's first view; a step "
+                         "that moves more than this (px) ends its track (0: frame to frame only)")
     ap.add_argument("--pnp-below", type=int, default=VOConfig.pnp_below,
                     help="pairs KLT tracks at fewer points than this are measured by PnP on the depth")
     ap.add_argument("--json", type=Path, help="also write the figures here")
@@ -217,7 +221,7 @@ def main() -> None:
     seqs = [_resize(s, size) for s in load(a.data, a.frames)]
     cfg = VOConfig(min_parallax_px=a.min_parallax, keyframe_baseline_px=a.keyframe_baseline,
                    links_per_frame=a.links, link_matcher=a.link_matcher, query_every=a.query_every,
-                   pnp_below=a.pnp_below)
+                   pnp_below=a.pnp_below, bundle_cfg=BAConfig(first_view_px=a.first_view_px))
     print(f"{a.data}: {', '.join(f'{s.name} ({len(s.images)})' for s in seqs)} at "
           f"{seqs[0].intrinsics.width}x{seqs[0].intrinsics.height}; {cfg}")
     rows = {}
