@@ -244,7 +244,7 @@ def test_tracks_go_on_where_no_fundamental_matrix_can_be_fitted(rendered: dict, 
 
 
 def test_tracks_from_their_first_views_keep_the_fit_from_bending() -> None:
-    """The demo scene's first path, 50 frames ~4 cm apart, adjusted from its true poses with the
+    """The demo scene's first path, 50 frames ~2 cm apart, adjusted from its true poses with the
     true depth: frame-to-frame steps alone drift (sub-pixel each, adding up along a track), and
     the fit bends to them, the path coming out >10 % too long and turned >3 deg; each step tracked
     again from the track's first view keeps it within 5 % and 2 deg."""

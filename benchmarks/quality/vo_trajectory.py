@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 
 from relocdepth import eval_geometry as EG
-from relocdepth.ba import BAConfig
 from relocdepth import metrics as M
+from relocdepth.ba import BAConfig
 from relocdepth.camera import Intrinsics
 from relocdepth.dataset import DEPTH_SCALE, open_dataset
 from relocdepth.evaluate import fit_sim3
