@@ -64,7 +64,10 @@ RECIPES: dict[str, dict[str, Any]] = {
     # and the network's rotation by about half at every checkpoint of two seeds; its translation
     # was better on one seed and worse on the other from step 450; the first seed reached rung 3
     # at step 1250 (README, Quality: trial 30). The demo scene's anchors are unchanged: none of
-    # its pairs has so few tracks.
+    # its pairs has so few tracks. The bundle adjustment tracks every step again from the track's
+    # first view (BAConfig.first_view_px): on the demo scene the anchors went from 0.052-0.056 to
+    # 0.012-0.019 m and the network's rotation from 24-26 to 3.7-5.7 deg; on the walk-through rung
+    # 3 at 5 of 7 checkpoints from step 950 instead of 1 (README, Quality: trial 31).
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250,
                      "anchor_bundle": True, "anchor_pnp_below": 50},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
