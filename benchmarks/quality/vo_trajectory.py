@@ -83,12 +83,17 @@ def load(path: Path, frames: int) -> list[Sequence]:
     return out
 
 
-def network_depth(checkpoint: str, seqs: list[Sequence]) -> tuple[list[list[np.ndarray]], float]:
+def network_depth(checkpoint: str, seqs: list[Sequence],
+                  raw: bool = False) -> tuple[list[list[np.ndarray]], float]:
     """Depth of every frame from the checkpoint's depth network, at each sequence's size; and the
-    seconds per frame it took."""
+    seconds per frame it took. ``raw``: the trained weights, not their moving average where the
+    checkpoint holds one (training builds its anchors with the weights it trains)."""
+    from relocdepth.checkpoint import load_checkpoint, resolve_checkpoint
     from relocdepth.predictor import Predictor
 
     pred = Predictor.from_checkpoint(checkpoint)
+    if raw:
+        pred.nets.load_state_dict(load_checkpoint(resolve_checkpoint(checkpoint))["model"])
     out, n, t0 = [], 0, time.process_time()
     for s in seqs:
         w, h = s.intrinsics.width, s.intrinsics.height
@@ -195,6 +200,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data", type=Path, help="shards from `reloc ingest`, or a walk-through folder")
     ap.add_argument("--checkpoint", help="a run or checkpoint file: depth from its depth network")
+    ap.add_argument("--raw-weights", action="store_true",
+                    help="--checkpoint: depth from the trained weights, not their moving average")
     ap.add_argument("--size", help="track at WxH (images and depth resized; K follows)")
     ap.add_argument("--frames", type=int, default=90, help="walk-through: its first N frames")
     ap.add_argument("--k", type=int, default=5, help="relative pose error between frames k apart")
@@ -227,7 +234,7 @@ def main() -> None:
     rows = {}
     sources = [("ground truth", [s.depth_gt for s in seqs], {})]
     if a.checkpoint:
-        depths, per_frame = network_depth(a.checkpoint, seqs)
+        depths, per_frame = network_depth(a.checkpoint, seqs, a.raw_weights)
         sources.insert(0, ("network", depths, {"depth_s_per_frame": per_frame}))
     for label, depths, extra in sources:
         rows[label] = run(seqs, depths, cfg, a.k) | extra
