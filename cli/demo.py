@@ -14,7 +14,7 @@ from relocdepth.cli.main import app
 @user_errors
 def demo(
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (scene/, shards/, run/, eval/); an earlier demo there is replaced.")] = Path("demo"),
-    minutes: Annotated[float, typer.Option("--minutes", help="Training budget in minutes, wall clock (rendering, ingest and evaluation add about half a minute). 8 minutes on 2 CPU cores: depth beats the constant-depth reference; the absolute pose needs far longer than 30 minutes on a CPU (README, Quality).")] = 8.0,
+    minutes: Annotated[float, typer.Option("--minutes", help="Training budget in minutes, wall clock (rendering, ingest and evaluation add about half a minute). 8 minutes on 2 CPU cores (~250-350 steps): depth beats the constant-depth reference, the relative pose the identity, the absolute pose the mean training pose and its rotation thumbnail retrieval's; retrieval's position needs far longer on a CPU (README, Quality).")] = 8.0,
     seed: Annotated[int, typer.Option(help="Seed of the generated scene and of training.")] = 0,
     pretrained: Annotated[str | None, typer.Option("--pretrained", metavar="imagenet|FILE|none", help="Encoder initialisation: ImageNet weights (downloaded if possible), a torchvision resnet18 .pth, or none.")] = "imagenet",
 ) -> None:

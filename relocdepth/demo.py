@@ -34,7 +34,8 @@ class DemoConfig:
     sequences: int = 3  # 2 train + 1 test, like a small 7-Scenes scene
     frames: int = 150  # per sequence: 5 s at 30 fps
     size: tuple[int, int] = (128, 96)  # rendered and trained at this size (W, H)
-    # The training recipe (relocdepth.recipes): the CPU recipe with the relative-pose bootstrap.
+    # The training recipe (relocdepth.recipes): the CPU recipe with the relative-pose bootstrap and,
+    # from step 100, absolute anchors from the training frames' own odometry.
     recipe: str = "demo"
     batch_size: int = 6  # paper IV-B
     pretrained: str | None = "imagenet"  # ImageNet encoder if downloadable, else random init

@@ -40,6 +40,10 @@ _CPU: dict[str, Any] = {"size": (128, 96), "window": 3, "lr": 3e-4, "photometric
 _BOOTSTRAP: dict[str, Any] = {"bootstrap": "essential", "bootstrap_steps": 2000, "bootstrap_fade_steps": 500,
                               "window": 10, "loss_resolution": "decoder", "bootstrap_track_width": 640}
 
+# `cpu-anchored`'s anchors (below): the training frames' bundle-adjusted odometry, fast turns by PnP.
+_ANCHORS: dict[str, Any] = {"anchor": "vo", "anchor_step": 150, "anchor_every": 250, "anchor_bundle": True,
+                            "anchor_pnp_below": 50}
+
 RECIPES: dict[str, dict[str, Any]] = {
     # The paper's recipe (Sec. IV-B): the defaults, 640x480, +-20 frames, lr 1e-4.
     "paper": {},
@@ -68,8 +72,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     # first view (BAConfig.first_view_px): on the demo scene the anchors went from 0.052-0.056 to
     # 0.012-0.019 m and the network's rotation from 24-26 to 3.7-5.7 deg; on the walk-through rung
     # 3 at 5 of 7 checkpoints from step 950 instead of 1 (README, Quality: trial 31).
-    "cpu-anchored": {**_CPU, **_BOOTSTRAP, "anchor": "vo", "anchor_step": 150, "anchor_every": 250,
-                     "anchor_bundle": True, "anchor_pnp_below": 50},
+    "cpu-anchored": {**_CPU, **_BOOTSTRAP, **_ANCHORS},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
     # into one world (built once its relative poses are right, step 600, then every 300 steps).
     # No hand-over within a CPU run: the bootstrap's warps and the anchors stay for 100000 steps.
@@ -77,8 +80,12 @@ RECIPES: dict[str, dict[str, Any]] = {
     # the absolute pose was no better; kept, depth stayed (README, Quality: trials 21-22).
     "cpu-linked": {**_CPU, **_BOOTSTRAP, "anchor": "linked", "anchor_step": 600, "anchor_every": 300,
                    "bootstrap_steps": 100_000},
-    # What `reloc demo` trains (its minutes end well inside the bootstrap).
-    "demo": {**_CPU, **_BOOTSTRAP},
+    # What `reloc demo` trains (its minutes end well inside the bootstrap): `cpu-anchored` with the
+    # first anchors at step 100, so that the DSC network has them for half of the demo's ~240 steps.
+    # At step 240 of the demo scene it was at rung 2 (relative pose better than identity's, rotation
+    # after a rotation-only fit 4.3-4.8 deg) where `cpu-bootstrap` stayed at rung 0 (10-12 deg), the
+    # same depth (README, Quality: trial 32).
+    "demo": {**_CPU, **_BOOTSTRAP, **_ANCHORS, "anchor_step": 100},
 }
 
 
