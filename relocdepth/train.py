@@ -143,7 +143,8 @@ class TrainConfig:
     # decay per step and written into every checkpoint, whose networks it then is for localisation
     # and evaluation (0: none). Training itself (the anchors too) uses the raw weights, so a run
     # takes the same steps with or without it. Early on the decay is capped at (1 + n) / (10 + n)
-    # after n steps, so that the average does not hold on to the random initialisation.
+    # after n steps, so that the average does not hold on to the random initialisation. A resumed
+    # run keeps its own average; a decay given when resuming changes it, or starts one.
     ema_decay: float = 0.0
     workers: int = 2  # DataLoader worker processes (0: load in the training process)
     device: str = "auto"  # auto | cpu | cuda
@@ -446,6 +447,10 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path) -> tuple[TrainConfig, dict 
     saved = TrainConfig.from_dict(ck["meta"]["train"])  # flat in checkpoints written before sections
     given, kept = cfg.values(), saved.values()
     overrides = {k: given[k] for k in RUN_CONTROL_FIELDS}
+    # A resumed run keeps its weights' average unless a decay is given: the default (0, none) would
+    # drop it from every later checkpoint, and with it the weights localize and evaluate use.
+    if not given["ema_decay"]:
+        overrides["ema_decay"] = kept["ema_decay"]
     ignored = [k for k in given if k not in overrides and k != "model.relpose" and given[k] != kept[k]]
     if ignored:
         log.warning("resuming %s: keeping the run's %s (given values ignored)", run_dir, ", ".join(ignored))

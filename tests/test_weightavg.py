@@ -101,6 +101,13 @@ def test_a_resumed_run_continues_its_average_exactly(synth_shards: Path, tmp_pat
     a, b = _ckpt(straight)["ema"], _ckpt(resumed)["ema"]
     assert a["updates"] == b["updates"] == 4
     assert all(torch.equal(a["weights"][k], b["weights"][k]) for k in a["weights"])
+    # resumed without a decay (the default, none), a run keeps its own average and its decay
+    kept = tmp_path / "kept"
+    train(synth_shards, kept, _cfg(max_steps=2, ema_decay=0.9))
+    train(synth_shards, kept, _cfg(max_steps=4, resume=True))
+    c = _ckpt(kept)
+    assert c["ema"]["updates"] == 4 and c["ema"]["decay"] == 0.9 and c["meta"]["train"]["ema_decay"] == 0.9
+    assert all(torch.equal(a["weights"][k], c["ema"]["weights"][k]) for k in a["weights"])
     # a run trained without one may start one when resumed: from the weights it resumes with
     late = tmp_path / "late"
     train(synth_shards, late, _cfg(max_steps=2))
