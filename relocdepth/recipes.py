@@ -82,9 +82,9 @@ RECIPES: dict[str, dict[str, Any]] = {
                    "bootstrap_steps": 100_000},
     # What `reloc demo` trains (its minutes end well inside the bootstrap): `cpu-anchored` with the
     # first anchors at step 100, so that the DSC network has them for half of the demo's ~240 steps.
-    # At step 240 of the demo scene it was at rung 2 (relative pose better than identity's, rotation
-    # after a rotation-only fit 4.3-4.8 deg) where `cpu-bootstrap` stayed at rung 0 (10-12 deg), the
-    # same depth (README, Quality: trial 32).
+    # At steps 200 and 240 of the demo scene it was at rung 2 on three seeds (relative pose better
+    # than identity's, rotation after a rotation-only fit 4.3-7.0 deg) where `cpu-bootstrap` stayed
+    # at rung 0 (9.5-12.2 deg), depth within 0.007 AbsRel (README, Quality: trial 32).
     "demo": {**_CPU, **_BOOTSTRAP, **_ANCHORS, "anchor_step": 100},
 }
 
