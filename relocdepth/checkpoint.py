@@ -216,14 +216,15 @@ def save_alignment(path_or_run: str | Path | None, alignment: dict) -> None:
     write_json_atomic(_alignment_path(ckpt), obj, sort_keys=True)
 
 
-def load_for_inference(path_or_run: str | Path | None, device: str = "cpu") -> tuple[Any, dict]:
+def load_for_inference(path_or_run: str | Path | None, device: str = "cpu",
+                       raw: bool = False) -> tuple[Any, dict]:
     """Networks in eval mode plus metadata, from a checkpoint file or run folder.
 
     Returns ``(nets, meta)``; ``meta`` is the checkpoint metadata with ``input_size`` (W, H),
     ``intrinsics`` (training camera at input size), ``alignment`` (Sim(3) dict or None),
     ``config`` (the training config dict), ``manifest_hash``, ``step``, ``path`` and ``weights``:
     "average" where the checkpoint holds a moving average of the weights (whose networks these
-    then are), else "raw".
+    then are, unless ``raw``: the trained weights, as training itself uses them), else "raw".
     """
     from relocdepth.models import ModelConfig, Networks
 
@@ -233,7 +234,8 @@ def load_for_inference(path_or_run: str | Path | None, device: str = "cpu") -> t
     model_cfg = dict(meta["model"])
     model_cfg["pretrained"] = None  # the weights come from the checkpoint
     nets = Networks(ModelConfig(**model_cfg))  # not build_networks: no initialisation to log
-    ema = ckpt.get("ema")  # the weights' moving average, where training kept one (TrainConfig.ema_decay)
+    # the weights' moving average, where training kept one (TrainConfig.ema_decay) and it is wanted
+    ema = None if raw else ckpt.get("ema")
     nets.load_state_dict(ema["weights"] if ema else ckpt["model"])
     meta["weights"] = "average" if ema else "raw"
     log.info("networks loaded from %s (step %s, %s weights)", path, meta.get("step"), meta["weights"])

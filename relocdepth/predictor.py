@@ -54,10 +54,10 @@ class Predictor:
         self.alignment: dict | None = meta.get("alignment")
 
     @classmethod
-    def from_checkpoint(cls, path_or_run: str | Path | None, device: str = "cpu") -> Predictor:
+    def from_checkpoint(cls, path_or_run: str | Path | None, device: str = "cpu", raw: bool = False) -> Predictor:
         from relocdepth.checkpoint import load_for_inference
 
-        nets, meta = load_for_inference(path_or_run, device=device)
+        nets, meta = load_for_inference(path_or_run, device=device, raw=raw)
         return cls(nets, meta, device)
 
     def intrinsics_for(self, width: int, height: int, given: Intrinsics | None = None) -> Intrinsics:

@@ -397,7 +397,8 @@ def world_trajectory(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndar
     if cfg.bundle:
         from relocdepth.ba import bundle_adjust
 
-        adjusted = [bundle_adjust(im, k, tr.T_wc, d, cfg.bundle_cfg) for tr, im, k, d in zip(trajs, images, K, depth)]
+        adjusted = [bundle_adjust(im, k, tr.T_wc, d, cfg.bundle_cfg)
+                    for tr, im, k, d in zip(trajs, images, K, depth)]
         trajs = [replace(tr, T_wc=a.T_wc) for tr, a in zip(trajs, adjusted)]
         bundled = [a.summary() for a in adjusted]
     aligned = 0

@@ -80,6 +80,9 @@ def test_training_with_the_average_takes_the_same_steps_and_saves_it(synth_shard
     nets, meta = ckpt_io.load_for_inference(averaged)
     assert meta["weights"] == "average"
     assert all(torch.equal(v, ema[k]) for k, v in nets.state_dict().items())
+    nets, meta = ckpt_io.load_for_inference(averaged, raw=True)  # the trained weights when asked
+    assert meta["weights"] == "raw"
+    assert all(torch.equal(v, b["model"][k]) for k, v in nets.state_dict().items())
     nets, meta = ckpt_io.load_for_inference(plain)
     assert meta["weights"] == "raw"
     assert all(torch.equal(v, a["model"][k]) for k, v in nets.state_dict().items())

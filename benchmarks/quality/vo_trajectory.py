@@ -88,12 +88,9 @@ def network_depth(checkpoint: str, seqs: list[Sequence],
     """Depth of every frame from the checkpoint's depth network, at each sequence's size; and the
     seconds per frame it took. ``raw``: the trained weights, not their moving average where the
     checkpoint holds one (training builds its anchors with the weights it trains)."""
-    from relocdepth.checkpoint import load_checkpoint, resolve_checkpoint
     from relocdepth.predictor import Predictor
 
-    pred = Predictor.from_checkpoint(checkpoint)
-    if raw:
-        pred.nets.load_state_dict(load_checkpoint(resolve_checkpoint(checkpoint))["model"])
+    pred = Predictor.from_checkpoint(checkpoint, raw=raw)
     out, n, t0 = [], 0, time.process_time()
     for s in seqs:
         w, h = s.intrinsics.width, s.intrinsics.height
