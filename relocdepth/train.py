@@ -17,7 +17,7 @@ import random
 import signal
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -431,8 +431,15 @@ class _LossModule:
         return TripletLossModule()
 
 
-def _resolve_config(cfg: TrainConfig, run_dir: Path) -> tuple[TrainConfig, dict | None, Path | None]:
-    """The config to use and the checkpoint to resume (None when starting fresh)."""
+def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | None = None,
+                    ) -> tuple[TrainConfig, dict | None, Path | None]:
+    """The config to use and the checkpoint to resume (None when starting fresh).
+
+    A resumed run keeps its own options but takes the run controls (:data:`RUN_CONTROL_FIELDS`)
+    from ``cfg``; of those, the weights' average (``ema_decay``) only where ``given`` names it, so
+    that leaving it out keeps the run's average. ``given``: the places (see
+    :meth:`TrainConfig.values`) the caller set on purpose; None, those where ``cfg`` differs from
+    the defaults. Given values the run keeps over are named in a warning."""
     latest = ckpt_io.latest_checkpoint(run_dir) if run_dir.exists() else None
     if not cfg.resume:
         if latest is not None:
@@ -445,15 +452,15 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path) -> tuple[TrainConfig, dict 
         raise UserError(f"nothing to resume: {run_dir} holds no checkpoint; drop --resume to start a run")
     ck = ckpt_io.load_checkpoint(latest)
     saved = TrainConfig.from_dict(ck["meta"]["train"])  # flat in checkpoints written before sections
-    given, kept = cfg.values(), saved.values()
-    overrides = {k: given[k] for k in RUN_CONTROL_FIELDS}
-    # A resumed run keeps its weights' average unless a decay is given: the default (0, none) would
-    # drop it from every later checkpoint, and with it the weights localize and evaluate use.
-    if not given["ema_decay"]:
-        overrides["ema_decay"] = kept["ema_decay"]
-    ignored = [k for k in given if k not in overrides and k != "model.relpose" and given[k] != kept[k]]
+    values, kept = cfg.values(), saved.values()
+    if given is None:
+        default = TrainConfig().values()
+        given = [k for k in values if values[k] != default[k]]
+    overrides = {k: values[k] for k in RUN_CONTROL_FIELDS if k != "ema_decay" or k in given}
+    ignored = [k for k in given if k not in overrides and k != "model.relpose" and values[k] != kept[k]]
     if ignored:
-        log.warning("resuming %s: keeping the run's %s (given values ignored)", run_dir, ", ".join(ignored))
+        log.warning("resuming %s: keeping the run's %s (given values ignored)", run_dir,
+                    ", ".join(f"{k} = {kept[k]!r}" for k in ignored))
     return TrainConfig.from_values({**kept, **overrides}), ck, latest
 
 
@@ -508,11 +515,12 @@ def _oracle_depth_batch(gt: list[np.ndarray], index: Any, crop: Any, width: int,
     return torch.from_numpy(out)
 
 
-def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig) -> tuple[Trainer, RunState]:
+def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig, given: Collection[str] | None = None,
+          ) -> tuple[Trainer, RunState]:
     import torch
 
     frames = ImageFrames.open(shards)  # user errors before anything is written
-    cfg, ck, ck_path = _resolve_config(cfg, run_dir)
+    cfg, ck, ck_path = _resolve_config(cfg, run_dir, given)
     gt_poses = None
     gt_depths = research_gt_depths(shards, frames) if cfg.oracle_gt_depth else None
     if gt_depths is not None:
@@ -934,14 +942,19 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
     state.stop = "epochs"
 
 
-def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfig()) -> dict[str, Any]:
+def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfig(),
+          given: Collection[str] | None = None) -> dict[str, Any]:
     """Train on ``shards`` into ``run_dir``; returns a summary (steps, stop reason, checkpoint...).
+
+    ``given``: the options (places, see :meth:`TrainConfig.values`) set on purpose, e.g. those typed
+    on the command line; a resumed run keeps its own values of the others (None: the options where
+    ``cfg`` differs from the defaults count as given).
 
     Raises :class:`UserError` for bad inputs and :class:`TrainingDiverged` when the loss diverges
     (``max_nonfinite`` non-finite losses in a row; the last good checkpoint stays the newest).
     """
     run_dir = Path(run_dir)
-    tr, state = setup(shards, run_dir, cfg)
+    tr, state = setup(shards, run_dir, cfg, given)
     start_step = state.step
     tr.log.event("resume" if tr.cfg.resume else "start", state.step, world_size=tr.dist.world_size,
                  device=str(tr.device), pretrained=tr.cfg.model.pretrained)
