@@ -149,6 +149,8 @@ def test_demo_runs_end_to_end_at_a_tiny_size(tmp_path: Path, monkeypatch: pytest
     assert steps and steps[0]["diagnostics"]["boot_warps"] == 1.0
     report = json.loads((out / "eval" / "report.json").read_text())
     assert report["checkpoint"]["step"] == done["train"]["steps"]  # it evaluated the final weights
+    # ... and refined the test poses against the nearest training frames, beside the network's
+    assert report["pose"]["refined"]["test"]["median_t_m"] >= 0 and "refined, nearest train" in text
     assert report["dataset"]["test_frames"] == 12 and report["checkpoint"]["input_size"] == [64, 64]
     for p in (out / "eval" / "plots" / "trajectory.png", out / "eval" / "plots" / "depth_strips.png",
               out / "run" / "checkpoints" / "alignment.json"):
@@ -160,3 +162,28 @@ def test_demo_runs_end_to_end_at_a_tiny_size(tmp_path: Path, monkeypatch: pytest
     res = CliRunner().invoke(app, ["demo", "-o", str(foreign), "--minutes", "0.1", "--pretrained", "none"])
     assert res.exit_code == 2 and "holds no earlier demo" in res.output
     assert (foreign / "notes.txt").read_text() == "keep me"
+
+
+def test_the_demo_says_which_references_it_beats() -> None:
+    """Each reference is beaten only where both figures are lower; the refined pose is judged
+    against retrieval apart from the network's own, and only where the report has it."""
+    from relocdepth.demo import beaten_references
+
+    report = {
+        "pose": {"test": {"median_t_m": 0.25, "median_r_deg": 4.7},
+                 "relative": {"k": 5, "median_t_m": 0.035, "median_r_deg": 1.6,
+                              "identity_median_t_m": 0.039, "identity_median_r_deg": 2.6}},
+        "baselines": {"mean_pose": {"median_t_m": 0.34, "median_r_deg": 14.9},
+                      "retrieval": {"median_t_m": 0.21, "median_r_deg": 5.4}},
+        "depth": {"prediction": {"abs_rel": 0.08}, "constant_reference": {"abs_rel": 0.21}},
+    }
+    beats, misses = beaten_references(report)
+    assert [b.split(" (")[0] for b in beats] == ["constant depth", "identity relative pose, frames 5 apart",
+                                                  "mean training pose"]
+    assert [m.split(" (")[0] for m in misses] == ["thumbnail retrieval"]
+    report["pose"]["refined"] = {"test": {"median_t_m": 0.045, "median_r_deg": 2.2}}
+    beats, misses = beaten_references(report)
+    assert beats[-1].startswith("thumbnail retrieval by the refined pose") and "0.045 m / 2.2 deg" in beats[-1]
+    assert [m.split(" (")[0] for m in misses] == ["thumbnail retrieval"]
+    report["pose"]["refined"]["test"]["median_r_deg"] = 6.0  # rotation above retrieval's: not beaten
+    assert beaten_references(report)[1][-1].startswith("thumbnail retrieval by the refined pose")
