@@ -17,7 +17,7 @@ def demo(
     minutes: Annotated[float, typer.Option("--minutes", help="Training budget in minutes, wall clock (rendering, ingest and evaluation add about half a minute). 8 minutes on 2 CPU cores (~250-350 steps): depth beats the constant-depth reference, the relative pose the identity, the absolute pose the mean training pose, and the refined pose thumbnail retrieval; the network's own position reaches retrieval's only after far longer on a CPU (README, Quality).")] = 8.0,
     seed: Annotated[int, typer.Option(help="Seed of the generated scene and of training.")] = 0,
     pretrained: Annotated[str | None, typer.Option("--pretrained", metavar="imagenet|FILE|none", help="Encoder initialisation: ImageNet weights (downloaded if possible), a torchvision resnet18 .pth, or none.")] = "imagenet",
-    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="Also evaluate the test poses refined against their nearest training frames (what `reloc localize --refine` gives; not the paper's method; about a minute more).")] = True,
+    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="Also evaluate the test poses refined against their nearest training frames (what `reloc localize --refine` gives; not the paper's method; about 20 s more at the default size).")] = True,
 ) -> None:
     """Run the whole pipeline on a generated scene and print the evaluation table."""
     from relocdepth.demo import DemoConfig, beaten_references, run_demo

@@ -42,7 +42,7 @@ class DemoConfig:
     workers: int = 1  # DataLoader workers (a 2-core machine)
     eval_batch_size: int = 16
     # Also evaluate each test pose refined against its nearest training frames (relocdepth.refine,
-    # not the paper's: what `reloc localize --refine` gives), beside the network's own (~1 minute).
+    # not the paper's: what `reloc localize --refine` gives), beside the network's own (~20 s).
     refine: bool = True
 
 
