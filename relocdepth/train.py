@@ -139,6 +139,12 @@ class TrainConfig:
     # "vo": the odometry tracks the stored images down-sized to at most this width (0: the training
     # images), with the depth network's depth upsampled to them.
     anchor_track_width: int = 0
+    # "vo" with anchor_bundle: run the bundle adjustment to convergence (ANCHOR_BUNDLE_ITERATIONS)
+    # and hold its scale along the path to the depth network's depth per frame, smoothed over this
+    # many frames (relocdepth.ba.BAConfig.scale_window; 0: the adjustment's 30 iterations, one
+    # scale). On the real walk-through's checkpoints (offline) it lowered the worst builds (0.203 ->
+    # 0.121 m) and the mean (README, Quality: trial 34); unmeasured in training.
+    anchor_bundle_scale: float = 0.0
     # An exponential moving average of the weights (not in the paper), kept beside them with this
     # decay per step and written into every checkpoint, whose networks it then is for localisation
     # and evaluation (0: none). Training itself (the anchors too) uses the raw weights, so a run
@@ -214,6 +220,10 @@ class TrainConfig:
             raise UserError("--anchor-track-width needs --anchor vo (it is where the anchors' odometry tracks)")
         if self.anchor_track_width < 0:
             raise UserError(f"--anchor-track-width must be >= 0 pixels, not {self.anchor_track_width}")
+        if self.anchor_bundle_scale and not self.anchor_bundle:
+            raise UserError("--anchor-bundle-scale needs --anchor-bundle (it holds the adjusted path's scale)")
+        if not (self.anchor_bundle_scale >= 0 and math.isfinite(self.anchor_bundle_scale)):
+            raise UserError(f"--anchor-bundle-scale must be a number of frames >= 0, not {self.anchor_bundle_scale}")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         if not (self.w_direction >= 0 and math.isfinite(self.w_direction)):
@@ -429,6 +439,21 @@ class _LossModule:
                 return triplet_loss(self.nets, images, inputs, K, method_cfg, boot, depth)
 
         return TripletLossModule()
+
+
+# The bundle adjustment's iterations where --anchor-bundle-scale holds the scale along the path
+# (the default 30 stop early, which is what keeps the scale without it: README, Quality, trial 34).
+ANCHOR_BUNDLE_ITERATIONS = 100
+
+
+def _anchor_bundle_config(cfg: TrainConfig) -> Any:
+    """The anchors' bundle adjustment: the defaults, or run to convergence with the scale held
+    along the path (``anchor_bundle_scale``)."""
+    from relocdepth.ba import BAConfig
+
+    if not cfg.anchor_bundle_scale:
+        return BAConfig()
+    return BAConfig(max_iterations=ANCHOR_BUNDLE_ITERATIONS, scale_window=cfg.anchor_bundle_scale)
 
 
 def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | None = None,
@@ -746,7 +771,8 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         align = tr.cfg.anchor_align_step is not None and state.step >= tr.cfg.anchor_align_step
         a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
                                                                         m.max_depth), tr.cfg.size,
-                            VOConfig(align=align, bundle=tr.cfg.anchor_bundle, pnp_below=tr.cfg.anchor_pnp_below),
+                            VOConfig(align=align, bundle=tr.cfg.anchor_bundle, pnp_below=tr.cfg.anchor_pnp_below,
+                                     bundle_cfg=_anchor_bundle_config(tr.cfg)),
                             track_width=tr.cfg.anchor_track_width)
         extra = "" if a.aligned is None else f", {a.aligned} frames aligned"
         if tr.cfg.anchor_pnp_below:

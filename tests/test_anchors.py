@@ -122,6 +122,12 @@ def test_anchor_schedule_and_options() -> None:
                                    field: value})
         with pytest.raises(UserError, match=f"{option} must be >= 0"):
             TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", field: -1})
+    with pytest.raises(UserError, match="--anchor-bundle-scale needs --anchor-bundle"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_bundle_scale": 20})
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(UserError, match="--anchor-bundle-scale must be a number of frames >= 0"):
+            TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
+                                   "anchor_bundle": True, "anchor_bundle_scale": bad})
 
 
 def test_held_anchors_outlast_the_bootstrap_in_the_trainer(synth_shards: Path, tmp_path: Path) -> None:
@@ -345,6 +351,28 @@ def test_trainer_tracks_the_anchors_odometry_at_the_width_asked(synth_shards_320
     train(synth_shards_320, run, _cfg(max_steps=2, anchor_track_width=1000))
     log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
     assert [d["track_size"] for d in log if d.get("event") == "anchors"] == [[320, 240]]
+
+
+def test_trainer_holds_the_anchors_scale_when_asked(synth_shards: Path, tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """``anchor_bundle_scale``: the trainer's build runs the bundle adjustment to convergence with
+    the scale held along the path over that many frames; without it, the adjustment's defaults."""
+    import relocdepth.anchors as A
+    from relocdepth.ba import BAConfig
+    from relocdepth.train import ANCHOR_BUNDLE_ITERATIONS, train
+
+    seen, build = [], A.build_anchors
+
+    def spy(frames, depth, size, cfg=None, track_width=0):  # noqa: ANN001, ANN202
+        seen.append(cfg)
+        return build(frames, depth, size, cfg, track_width)
+
+    monkeypatch.setattr(A, "build_anchors", spy)
+    train(synth_shards, tmp_path / "held", _cfg(max_steps=2, anchor_bundle=True, anchor_bundle_scale=5))
+    train(synth_shards, tmp_path / "plain", _cfg(max_steps=2, anchor_bundle=True))
+    assert [c.bundle for c in seen] == [True, True]
+    assert seen[0].bundle_cfg == BAConfig(max_iterations=ANCHOR_BUNDLE_ITERATIONS, scale_window=5)
+    assert seen[1].bundle_cfg == BAConfig()
 
 
 def test_linked_anchors_put_every_sequence_in_the_first_ones_world(synth_shards_320: Path) -> None:

@@ -12,7 +12,9 @@ from relocdepth.ba import (
     build_tracks,
     bundle_adjust,
     matrix_to_rotvec,
+    path_scale,
     reprojection_jacobians,
+    rescale_steps,
     rotation_prior_jacobians,
     rotvec_to_matrix,
     triangulate,
@@ -138,6 +140,60 @@ def test_true_poses_stay_and_the_scale_comes_from_depth(rendered: dict) -> None:
     # depth in other units (a network's): the result is in those units
     doubled = bundle_adjust(rendered["images"], K, T, lambda j: 2.0 * rendered["depth"][j])
     assert np.abs(doubled.T_wc[:, :3, 3] - 2.0 * out.T_wc[:, :3, 3]).max() < 0.004
+
+
+def test_a_path_rescaled_step_by_step_recovers_known_step_lengths() -> None:
+    """Steps shrunk by known per-frame factors, observations whose depth ratios say so: the path's
+    scale per frame is read back (median over a frame's observations, no smoothing to speak of)
+    and the rescaled path is the true one; frames without enough observations take their
+    neighbours' scale; a window wider than the path gives one scale."""
+    rng = np.random.default_rng(0)
+    n = 12
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, :3, :3] = rotvec_to_matrix(np.c_[np.zeros(n), np.linspace(0, 0.5, n), np.zeros(n)])
+    T[:, :3, 3] = np.cumsum(rng.normal(0, 0.1, (n, 3)), axis=0)
+    log_s = 0.3 * np.sin(np.arange(n) / 3.0)  # the path's own scale error per frame
+    frame = np.repeat(np.arange(n), 15)
+    log_ratio = log_s[frame] + rng.normal(0, 0.003, len(frame))
+    log_ratio[::15] = 5.0  # an outlier per frame: the median ignores it
+    got = path_scale(frame, log_ratio, n, window=0.2)
+    np.testing.assert_allclose(got, log_s, atol=0.01)
+    shrunk = T.copy()  # each step scaled down by its frames' mean factor
+    for j in range(1, n):
+        shrunk[j, :3, 3] = shrunk[j - 1, :3, 3] + np.exp(-0.5 * (log_s[j] + log_s[j - 1])) * (T[j, :3, 3] - T[j - 1, :3, 3])
+    back = rescale_steps(shrunk, got)
+    np.testing.assert_allclose(back[:, :3, 3], T[:, :3, 3], atol=0.01)
+    np.testing.assert_array_equal(back[:, :3, :3], shrunk[:, :3, :3])
+    sparse = path_scale(frame[frame != 5], log_ratio[frame != 5], n, window=0.6)
+    assert min(sparse[4], sparse[6]) - 0.01 <= sparse[5] <= max(sparse[4], sparse[6]) + 0.01
+    wide = path_scale(frame, log_ratio, n, window=1e4)
+    np.testing.assert_allclose(wide, np.mean(got), atol=0.01)
+    assert not path_scale(frame, log_ratio, n, 1.0, min_observations=16).any()  # no frame has 16
+
+
+def test_the_scale_along_the_path_follows_the_depth(rendered: dict) -> None:
+    """Depth maps whose scale grows along the path (1.0 to 1.5, a network's kind of error): with
+    ``scale_window`` the fitted path's steps grow with it, without it the path keeps one scale;
+    with the true depth the window leaves the fit where it was."""
+    T = _relative_to_first(rendered["T"])
+    K, n = INTR.K(), len(T)
+    grow = np.linspace(1.0, 1.5, n)
+    plain = bundle_adjust(rendered["images"], K, T, lambda j: grow[j] * rendered["depth"][j])
+    held = bundle_adjust(rendered["images"], K, T, lambda j: grow[j] * rendered["depth"][j],
+                         BAConfig(scale_window=1.0))
+    steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+
+    def growth(out: np.ndarray) -> float:  # the last 8 steps' length over the first 8's, against the truth's
+        got = np.linalg.norm(np.diff(out[:, :3, 3], axis=0), axis=1)
+        return (got[-8:].sum() / steps[-8:].sum()) / (got[:8].sum() / steps[:8].sum())
+
+    mid = 0.5 * (grow[1:] + grow[:-1])
+    expected = mid[-8:].mean() / mid[:8].mean()  # ~1.41
+    assert growth(held.T_wc) == pytest.approx(expected, rel=0.05)  # the steps follow the depth's scale
+    assert growth(plain.T_wc) == pytest.approx(1.0, abs=0.05)  # one scale
+    true = bundle_adjust(rendered["images"], K, T, rendered["depth"].__getitem__)
+    true_held = bundle_adjust(rendered["images"], K, T, rendered["depth"].__getitem__, BAConfig(scale_window=1.0))
+    assert np.abs(true_held.T_wc[:, :3, 3] - true.T_wc[:, :3, 3]).max() < 0.01
 
 
 def test_drift_is_taken_out(rendered: dict) -> None:
