@@ -143,8 +143,8 @@ class TrainConfig:
     # and hold its scale along the path to the depth network's depth per frame, smoothed over this
     # many frames (relocdepth.ba.BAConfig.scale_window; 0: the adjustment's 30 iterations, one
     # scale). Offline on 14 checkpoints of a real walk-through run, 10 frames: builds 0.064-0.176 m
-    # (mean 0.119) against 0.072-0.231 (0.134), closer at 10 (README, Training: the scale along
-    # the path).
+    # (mean 0.119) against 0.072-0.231 (0.134), closer at 10 of the 14 (README, Training: the
+    # scale along the path; Quality: trials 34-35).
     anchor_bundle_scale: float = 0.0
     # An exponential moving average of the weights (not in the paper), kept beside them with this
     # decay per step and written into every checkpoint, whose networks it then is for localisation
