@@ -65,6 +65,14 @@ class BAConfig:
     scale_window: float = 0.0
     min_scale_observations: int = 10  # a frame with fewer observations has no scale of its own
 
+    def __post_init__(self) -> None:
+        if not (self.scale_window >= 0 and np.isfinite(self.scale_window)):
+            raise ValueError(f"scale_window must be a number of frames >= 0, not {self.scale_window}")
+        if self.min_scale_observations < 1:
+            raise ValueError(f"min_scale_observations must be at least 1, not {self.min_scale_observations}")
+        if self.max_iterations < 0:
+            raise ValueError(f"max_iterations must be >= 0, not {self.max_iterations}")
+
 
 @dataclass
 class Tracks:

@@ -171,6 +171,17 @@ def test_a_path_rescaled_step_by_step_recovers_known_step_lengths() -> None:
     assert not path_scale(frame, log_ratio, n, 1.0, min_observations=16).any()  # no frame has 16
 
 
+@pytest.mark.parametrize("bad", [dict(scale_window=-1.0), dict(scale_window=float("nan")),
+                                 dict(scale_window=float("inf")), dict(min_scale_observations=0),
+                                 dict(max_iterations=-1)])
+def test_a_config_that_cannot_be_fitted_is_refused(bad: dict) -> None:
+    """A negative or undefined smoothing window (which would weight frames by a nonsense Gaussian),
+    no observations needed for a frame's scale, or a negative number of steps: refused up front."""
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        BAConfig(**bad)
+    BAConfig(scale_window=0.0, min_scale_observations=1, max_iterations=0)  # the edges are fine
+
+
 def test_the_scale_along_the_path_follows_the_depth(rendered: dict) -> None:
     """Depth maps whose scale grows along the path (1.0 to 1.5, a network's kind of error): with
     ``scale_window`` the fitted path's steps grow with it, without it the path keeps one scale;
