@@ -63,11 +63,21 @@ class BAConfig:
     # true depth, and held to the true depth per frame it came to 0.071-0.118 m (README, Quality:
     # trial 34). A network's per-frame scale is noisy (log std 0.17-0.20), hence the window.
     scale_window: float = 0.0
+    # ... or fitted by a polynomial of this degree in the frame's place along the path, weighted by
+    # each frame's observations (None: not fitted; exclusive with ``scale_window``). A network's
+    # per-frame scale errs in stretches of several frames, and a window averages them in; the
+    # path's own scale error drifts slowly, and a low-order fit follows the drift, not the
+    # stretches (README, Quality: trial 36).
+    scale_degree: int | None = None
     min_scale_observations: int = 10  # a frame with fewer observations has no scale of its own
 
     def __post_init__(self) -> None:
         if not (self.scale_window >= 0 and np.isfinite(self.scale_window)):
             raise ValueError(f"scale_window must be a number of frames >= 0, not {self.scale_window}")
+        if self.scale_degree is not None and self.scale_degree < 0:
+            raise ValueError(f"scale_degree must be >= 0, not {self.scale_degree}")
+        if self.scale_degree is not None and self.scale_window > 0:
+            raise ValueError("scale_window and scale_degree are two ways to hold the scale: give one")
         if self.min_scale_observations < 1:
             raise ValueError(f"min_scale_observations must be at least 1, not {self.min_scale_observations}")
         if self.max_iterations < 0:
@@ -323,27 +333,34 @@ def bundle_adjust(images: Sequence[np.ndarray], K: np.ndarray, T_wc: np.ndarray,
         scale = float(np.median(ratio[fine]))
         origin = out[0, :3, 3].copy()
         out[:, :3, 3] = origin + scale * (out[:, :3, 3] - origin)
-        if cfg.scale_window > 0:
+        if cfg.scale_window > 0 or cfg.scale_degree is not None:
             log_scale = path_scale(o_frame[fine], np.log(ratio[fine] / scale), n, cfg.scale_window,
-                                   cfg.min_scale_observations)
+                                   cfg.min_scale_observations, cfg.scale_degree)
             out = rescale_steps(out, log_scale)
     return Adjusted(out, int(good.sum()), len(o_frame), start, final, scale)
 
 
 def path_scale(frame: np.ndarray, log_ratio: np.ndarray, n: int, window: float,
-               min_observations: int = 10) -> np.ndarray:
+               min_observations: int = 10, degree: int | None = None) -> np.ndarray:
     """The log scale ``(n,)`` of each of ``n`` frames along a path: per frame, the median of its
     observations' ``log_ratio`` (depth map over the fitted point's depth; observation o in frame
     ``frame[o]``), where it has ``min_observations``; smoothed over a Gaussian window of ``window``
-    frames (frames without a scale of their own take their neighbours'). Zeros where no frame has one."""
-    own = np.full(n, np.nan)
+    frames (frames without a scale of their own take their neighbours'), or, with ``degree``, a
+    polynomial of that degree in the frame index fitted to the frames' scales, each weighted by
+    the square root of its observations (the degree lowered where too few frames have a scale).
+    Zeros where no frame has one."""
+    own, count = np.full(n, np.nan), np.zeros(n)
     for j in np.unique(frame):
         sel = frame == j
         if sel.sum() >= min_observations:
-            own[j] = np.median(log_ratio[sel])
+            own[j], count[j] = np.median(log_ratio[sel]), sel.sum()
     has = np.flatnonzero(np.isfinite(own))
     if len(has) == 0:
         return np.zeros(n)
+    if degree is not None:
+        x = np.arange(n) / max(n - 1, 1)  # in [0, 1]: a well-conditioned fit
+        fit = np.polynomial.Polynomial.fit(x[has], own[has], min(degree, len(has) - 1), w=np.sqrt(count[has]))
+        return fit(x)
     w = np.exp(-0.5 * ((np.arange(n)[:, None] - has[None, :]) / window) ** 2)
     return (w @ own[has]) / np.maximum(w.sum(axis=1), 1e-300)
 

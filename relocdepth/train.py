@@ -146,6 +146,11 @@ class TrainConfig:
     # (mean 0.119) against 0.072-0.231 (0.134), closer at 10 of the 14 (README, Training: the
     # scale along the path; Quality: trials 34-35).
     anchor_bundle_scale: float = 0.0
+    # ... or hold it by a polynomial of this degree along the path, fitted to the depth network's
+    # per-frame scale (relocdepth.ba.BAConfig.scale_degree; None: not; exclusive with
+    # anchor_bundle_scale). The network's per-frame scale errs in stretches of several frames that
+    # a window averages in; the path's own scale drifts slowly (README, Quality: trial 36).
+    anchor_bundle_scale_degree: int | None = None
     # An exponential moving average of the weights (not in the paper), kept beside them with this
     # decay per step and written into every checkpoint, whose networks it then is for localisation
     # and evaluation (0: none). Training itself (the anchors too) uses the raw weights, so a run
@@ -225,6 +230,14 @@ class TrainConfig:
             raise UserError("--anchor-bundle-scale needs --anchor-bundle (it holds the adjusted path's scale)")
         if not (self.anchor_bundle_scale >= 0 and math.isfinite(self.anchor_bundle_scale)):
             raise UserError(f"--anchor-bundle-scale must be a number of frames >= 0, not {self.anchor_bundle_scale}")
+        if self.anchor_bundle_scale_degree is not None:
+            if not self.anchor_bundle:
+                raise UserError("--anchor-bundle-scale-degree needs --anchor-bundle (it holds the adjusted path's scale)")
+            if self.anchor_bundle_scale:
+                raise UserError("--anchor-bundle-scale and --anchor-bundle-scale-degree are two ways to hold the "
+                                "path's scale: give one")
+            if self.anchor_bundle_scale_degree < 0:
+                raise UserError(f"--anchor-bundle-scale-degree must be >= 0, not {self.anchor_bundle_scale_degree}")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         if not (self.w_direction >= 0 and math.isfinite(self.w_direction)):
@@ -442,19 +455,22 @@ class _LossModule:
         return TripletLossModule()
 
 
-# The bundle adjustment's iterations where --anchor-bundle-scale holds the scale along the path
-# (the default 30 stop early, which is what keeps the scale without it: README, Quality, trial 34).
+# The bundle adjustment's iterations where the scale is held along the path (the default 30 stop
+# early, which is what keeps the scale without it: README, Quality, trial 34).
 ANCHOR_BUNDLE_ITERATIONS = 100
 
 
 def _anchor_bundle_config(cfg: TrainConfig) -> Any:
-    """The anchors' bundle adjustment: the defaults, or run to convergence with the scale held
-    along the path (``anchor_bundle_scale``)."""
+    """The anchors' bundle adjustment: the defaults; its defaults with the scale held along the path
+    by a polynomial (``anchor_bundle_scale_degree``); or run to convergence with the scale held over
+    a window (``anchor_bundle_scale``)."""
     from relocdepth.ba import BAConfig
 
-    if not cfg.anchor_bundle_scale:
-        return BAConfig()
-    return BAConfig(max_iterations=ANCHOR_BUNDLE_ITERATIONS, scale_window=cfg.anchor_bundle_scale)
+    if cfg.anchor_bundle_scale_degree is not None:
+        return BAConfig(scale_degree=cfg.anchor_bundle_scale_degree)
+    if cfg.anchor_bundle_scale:
+        return BAConfig(max_iterations=ANCHOR_BUNDLE_ITERATIONS, scale_window=cfg.anchor_bundle_scale)
+    return BAConfig()
 
 
 def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | None = None,

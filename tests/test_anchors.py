@@ -128,6 +128,13 @@ def test_anchor_schedule_and_options() -> None:
         with pytest.raises(UserError, match="--anchor-bundle-scale must be a number of frames >= 0"):
             TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
                                    "anchor_bundle": True, "anchor_bundle_scale": bad})
+    vo = {"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo"}
+    for extra, message in (({}, "--anchor-bundle-scale-degree needs --anchor-bundle"),
+                           ({"anchor_bundle": True, "anchor_bundle_scale": 10}, "two ways to hold"),
+                           ({"anchor_bundle": True, "anchor_bundle_scale_degree": -1},
+                            "--anchor-bundle-scale-degree must be >= 0")):
+        with pytest.raises(UserError, match=message):
+            TrainConfig.from_dict({"anchor_bundle_scale_degree": 1, **vo, **extra})
 
 
 def test_held_anchors_outlast_the_bootstrap_in_the_trainer(synth_shards: Path, tmp_path: Path) -> None:
@@ -356,7 +363,8 @@ def test_trainer_tracks_the_anchors_odometry_at_the_width_asked(synth_shards_320
 def test_trainer_holds_the_anchors_scale_when_asked(synth_shards: Path, tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """``anchor_bundle_scale``: the trainer's build runs the bundle adjustment to convergence with
-    the scale held along the path over that many frames; without it, the adjustment's defaults."""
+    the scale held along the path over that many frames; ``anchor_bundle_scale_degree``, by a
+    polynomial of that degree; without either, the adjustment's defaults."""
     import relocdepth.anchors as A
     from relocdepth.ba import BAConfig
     from relocdepth.train import ANCHOR_BUNDLE_ITERATIONS, train
@@ -370,9 +378,11 @@ def test_trainer_holds_the_anchors_scale_when_asked(synth_shards: Path, tmp_path
     monkeypatch.setattr(A, "build_anchors", spy)
     train(synth_shards, tmp_path / "held", _cfg(max_steps=2, anchor_bundle=True, anchor_bundle_scale=5))
     train(synth_shards, tmp_path / "plain", _cfg(max_steps=2, anchor_bundle=True))
-    assert [c.bundle for c in seen] == [True, True]
+    train(synth_shards, tmp_path / "line", _cfg(max_steps=2, anchor_bundle=True, anchor_bundle_scale_degree=1))
+    assert [c.bundle for c in seen] == [True, True, True]
     assert seen[0].bundle_cfg == BAConfig(max_iterations=ANCHOR_BUNDLE_ITERATIONS, scale_window=5)
     assert seen[1].bundle_cfg == BAConfig()
+    assert seen[2].bundle_cfg == BAConfig(scale_degree=1)
 
 
 def test_linked_anchors_put_every_sequence_in_the_first_ones_world(synth_shards_320: Path) -> None:

@@ -171,13 +171,47 @@ def test_a_path_rescaled_step_by_step_recovers_known_step_lengths() -> None:
     assert not path_scale(frame, log_ratio, n, 1.0, min_observations=16).any()  # no frame has 16
 
 
+def test_a_drift_along_the_path_is_fitted_through_stretches_of_error() -> None:
+    """The path's scale drifting linearly, the depth maps' scale off by +-0.25 in stretches of
+    eight frames (a network's kind of error): a line through the frames' scales follows the drift
+    where a window follows the stretches; the fit weights frames by their observations, keeps to
+    what two frames can say, and gives one scale at degree 0."""
+    rng = np.random.default_rng(1)
+    n = 48
+    drift = np.linspace(0.2, -0.2, n)
+    stretch = np.zeros(n)
+    stretch[4:12], stretch[16:24], stretch[28:36], stretch[40:48] = 0.25, -0.25, -0.25, 0.25
+    frame = np.repeat(np.arange(n), 20)
+    log_ratio = (drift + stretch)[frame] + rng.normal(0, 0.01, len(frame))
+    line = path_scale(frame, log_ratio, n, 0.0, degree=1)
+    window = path_scale(frame, log_ratio, n, 3.0)
+    assert np.abs(line - drift).max() < 0.06
+    assert np.abs(window - drift).max() > 0.15
+    obs = np.arange(len(frame))
+    heavy = np.isin(frame, np.r_[4:12, 40:48])  # these frames keep all 20 observations, the rest 10
+    keep = heavy | (obs % 20 < 10)
+    count = np.where(np.isin(np.arange(n), np.r_[4:12, 40:48]), 20, 10)
+    truth = drift + stretch
+    weighted = np.sum(count * truth) / count.sum()
+    assert abs(weighted - truth.mean()) > 0.03  # weighting matters here
+    leaned = path_scale(frame[keep], log_ratio[keep], n, 0.0, degree=0)
+    np.testing.assert_allclose(leaned, weighted, atol=0.01)
+    two = np.isin(frame, [10, 30])
+    got = path_scale(frame[two], log_ratio[two], n, 0.0, degree=3)  # a line through two frames
+    np.testing.assert_allclose(np.diff(got, 2), 0.0, atol=1e-9)
+    np.testing.assert_allclose(got[[10, 30]], [np.median(log_ratio[frame == 10]), np.median(log_ratio[frame == 30])],
+                               atol=1e-9)
+    assert np.ptp(path_scale(frame, log_ratio, n, 0.0, degree=0)) < 1e-12
+
+
 @pytest.mark.parametrize("bad", [dict(scale_window=-1.0), dict(scale_window=float("nan")),
                                  dict(scale_window=float("inf")), dict(min_scale_observations=0),
-                                 dict(max_iterations=-1)])
+                                 dict(max_iterations=-1), dict(scale_degree=-1),
+                                 dict(scale_window=5.0, scale_degree=1)])
 def test_a_config_that_cannot_be_fitted_is_refused(bad: dict) -> None:
     """A negative or undefined smoothing window (which would weight frames by a nonsense Gaussian),
     no observations needed for a frame's scale, or a negative number of steps: refused up front."""
-    with pytest.raises(ValueError, match=next(iter(bad))):
+    with pytest.raises(ValueError, match=list(bad)[-1]):
         BAConfig(**bad)
     BAConfig(scale_window=0.0, min_scale_observations=1, max_iterations=0)  # the edges are fine
 

@@ -217,6 +217,14 @@ def main() -> None:
     ap.add_argument("--first-view-px", type=float, default=BAConfig.first_view_px,
                     help="--bundle: each track step tracked again from the track's first view; a step "
                          "that moves more than this (px) ends its track (0: frame to frame only)")
+    ap.add_argument("--scale-degree", type=int, default=BAConfig.scale_degree,
+                    help="--bundle: hold the adjusted path's scale to the depth maps' by a polynomial of "
+                         "this degree along it (the trainer's --anchor-bundle-scale-degree)")
+    ap.add_argument("--scale-window", type=float, default=BAConfig.scale_window,
+                    help="--bundle: ... or over a Gaussian window of this many frames (the trainer's "
+                         "--anchor-bundle-scale runs the adjustment to 100 iterations with it: --iterations)")
+    ap.add_argument("--iterations", type=int, default=BAConfig.max_iterations,
+                    help="--bundle: the adjustment's Levenberg-Marquardt steps at most")
     ap.add_argument("--pnp-below", type=int, default=VOConfig.pnp_below,
                     help="pairs KLT tracks at fewer points than this are measured by PnP on the depth")
     ap.add_argument("--json", type=Path, help="also write the figures here")
@@ -225,7 +233,9 @@ def main() -> None:
     seqs = [_resize(s, size) for s in load(a.data, a.frames)]
     cfg = VOConfig(min_parallax_px=a.min_parallax, keyframe_baseline_px=a.keyframe_baseline,
                    links_per_frame=a.links, link_matcher=a.link_matcher, query_every=a.query_every,
-                   pnp_below=a.pnp_below, bundle_cfg=BAConfig(first_view_px=a.first_view_px))
+                   pnp_below=a.pnp_below,
+                   bundle_cfg=BAConfig(first_view_px=a.first_view_px, scale_degree=a.scale_degree,
+                                       scale_window=a.scale_window, max_iterations=a.iterations))
     print(f"{a.data}: {', '.join(f'{s.name} ({len(s.images)})' for s in seqs)} at "
           f"{seqs[0].intrinsics.width}x{seqs[0].intrinsics.height}; {cfg}")
     rows = {}
