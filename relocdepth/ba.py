@@ -100,7 +100,8 @@ class Tracks:
 @dataclass
 class Adjusted:
     """The adjusted poses ``T_wc (N, 4, 4)``; the tracks and observations the fit used; the median
-    reprojection error (px) before and after; the scale applied from the depth maps."""
+    reprojection error (px) before and after; the scale applied from the depth maps; where the
+    scale was held along the path, the least and greatest factor its frames were given."""
 
     T_wc: np.ndarray
     tracks: int
@@ -108,11 +109,16 @@ class Adjusted:
     start_px: float
     final_px: float
     scale: float
+    held: tuple[float, float] | None = None
 
     def summary(self) -> dict:
-        """The figures for a log: tracks, observations, median reprojection error before / after."""
-        return {"tracks": self.tracks, "observations": self.observations,
-                "start_px": round(self.start_px, 3), "final_px": round(self.final_px, 3)}
+        """The figures for a log: tracks, observations, median reprojection error before / after,
+        and the range of the scale held along the path where it was."""
+        out = {"tracks": self.tracks, "observations": self.observations,
+               "start_px": round(self.start_px, 3), "final_px": round(self.final_px, 3)}
+        if self.held is not None:
+            out["held"] = [round(v, 3) for v in self.held]
+        return out
 
 
 def _epipolar_inliers(a: np.ndarray, b: np.ndarray, keep: np.ndarray, threshold_px: float) -> np.ndarray:
@@ -324,7 +330,7 @@ def bundle_adjust(images: Sequence[np.ndarray], K: np.ndarray, T_wc: np.ndarray,
     for j in range(1, n):
         if not seen[j]:
             out[j] = out[j - 1] @ np.linalg.inv(T_wc[j - 1]) @ T_wc[j]
-    scale = 1.0
+    scale, held = 1.0, None
     z = _in_camera(R[o_frame], t[o_frame], P[o_pt])[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = o_depth[use] / z
@@ -337,7 +343,8 @@ def bundle_adjust(images: Sequence[np.ndarray], K: np.ndarray, T_wc: np.ndarray,
             log_scale = path_scale(o_frame[fine], np.log(ratio[fine] / scale), n, cfg.scale_window,
                                    cfg.min_scale_observations, cfg.scale_degree)
             out = rescale_steps(out, log_scale)
-    return Adjusted(out, int(good.sum()), len(o_frame), start, final, scale)
+            held = (float(np.exp(log_scale.min())), float(np.exp(log_scale.max())))
+    return Adjusted(out, int(good.sum()), len(o_frame), start, final, scale, held)
 
 
 def path_scale(frame: np.ndarray, log_ratio: np.ndarray, n: int, window: float,

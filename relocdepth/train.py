@@ -796,7 +796,9 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
             extra += f", {a.pnp} by PnP"
         if a.bundled is not None:
             extra += ", bundle-adjusted: " + "; ".join(
-                f"{b['tracks']} tracks, {b['start_px']:.2f} -> {b['final_px']:.2f} px" for b in a.bundled)
+                f"{b['tracks']} tracks, {b['start_px']:.2f} -> {b['final_px']:.2f} px"
+                + (f", scale held along the path at {b['held'][0]:.2f}-{b['held'][1]:.2f}" if "held" in b else "")
+                for b in a.bundled)
         size = "x".join(map(str, a.track_size))
         how = f"odometry of {len(a.T_wc)} frames at {size} ({a.keyframes} keyframes, {a.lost} lost{extra})"
     if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them

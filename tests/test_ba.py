@@ -218,8 +218,9 @@ def test_a_config_that_cannot_be_fitted_is_refused(bad: dict) -> None:
 
 def test_the_scale_along_the_path_follows_the_depth(rendered: dict) -> None:
     """Depth maps whose scale grows along the path (1.0 to 1.5, a network's kind of error): with
-    ``scale_window`` the fitted path's steps grow with it, without it the path keeps one scale;
-    with the true depth the window leaves the fit where it was."""
+    ``scale_window``, or a line (``scale_degree`` 1), the fitted path's steps grow with it and the
+    summary gives the factors' range; without either the path keeps one scale; with the true depth
+    the window and the line leave the fit where it was."""
     T = _relative_to_first(rendered["T"])
     K, n = INTR.K(), len(T)
     grow = np.linspace(1.0, 1.5, n)
@@ -236,9 +237,17 @@ def test_the_scale_along_the_path_follows_the_depth(rendered: dict) -> None:
     expected = mid[-8:].mean() / mid[:8].mean()  # ~1.41
     assert growth(held.T_wc) == pytest.approx(expected, rel=0.05)  # the steps follow the depth's scale
     assert growth(plain.T_wc) == pytest.approx(1.0, abs=0.05)  # one scale
+    line = bundle_adjust(rendered["images"], K, T, lambda j: grow[j] * rendered["depth"][j],
+                         BAConfig(scale_degree=1))
+    assert growth(line.T_wc) == pytest.approx(expected, rel=0.05)
+    for out in (held, line):
+        low, high = out.summary()["held"]
+        assert high / low == pytest.approx(1.5, rel=0.1)  # the frames' factors span the depth's growth
+    assert plain.held is None and "held" not in plain.summary()
     true = bundle_adjust(rendered["images"], K, T, rendered["depth"].__getitem__)
-    true_held = bundle_adjust(rendered["images"], K, T, rendered["depth"].__getitem__, BAConfig(scale_window=1.0))
-    assert np.abs(true_held.T_wc[:, :3, 3] - true.T_wc[:, :3, 3]).max() < 0.01
+    for cfg in (BAConfig(scale_window=1.0), BAConfig(scale_degree=1)):
+        true_held = bundle_adjust(rendered["images"], K, T, rendered["depth"].__getitem__, cfg)
+        assert np.abs(true_held.T_wc[:, :3, 3] - true.T_wc[:, :3, 3]).max() < 0.01
 
 
 def test_drift_is_taken_out(rendered: dict) -> None:
