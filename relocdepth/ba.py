@@ -67,7 +67,7 @@ class BAConfig:
     # each frame's observations (None: not fitted; exclusive with ``scale_window``). A network's
     # per-frame scale errs in stretches of several frames, and a window averages them in; the
     # path's own scale error drifts slowly, and a low-order fit follows the drift, not the
-    # stretches (README, Quality: trial 36).
+    # stretches (README, Training: a drift of the scale along the path).
     scale_degree: int | None = None
     min_scale_observations: int = 10  # a frame with fewer observations has no scale of its own
 

@@ -147,9 +147,11 @@ class TrainConfig:
     # scale along the path; Quality: trials 34-35).
     anchor_bundle_scale: float = 0.0
     # ... or hold it by a polynomial of this degree along the path, fitted to the depth network's
-    # per-frame scale (relocdepth.ba.BAConfig.scale_degree; None: not; exclusive with
-    # anchor_bundle_scale). The network's per-frame scale errs in stretches of several frames that
-    # a window averages in; the path's own scale drifts slowly (README, Quality: trial 36).
+    # per-frame scale after the adjustment's usual 30 iterations (relocdepth.ba.BAConfig.scale_degree;
+    # None: not; exclusive with anchor_bundle_scale). Offline on a real walk-through run, degree 1:
+    # closer than the default at 9 of 10 checkpoints to step 600 (mean 0.095 m against 0.133), but
+    # farther at all 5 from step 650, where the default builds were 0.06-0.08 m (README, Training:
+    # a drift of the scale along the path; Quality: trial 36).
     anchor_bundle_scale_degree: int | None = None
     # An exponential moving average of the weights (not in the paper), kept beside them with this
     # decay per step and written into every checkpoint, whose networks it then is for localisation
