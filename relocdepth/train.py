@@ -150,7 +150,7 @@ class TrainConfig:
     # per-frame scale after the adjustment's usual 30 iterations (relocdepth.ba.BAConfig.scale_degree;
     # None: not; exclusive with anchor_bundle_scale). Offline on a real walk-through run, degree 1:
     # closer than the default at 9 of 10 checkpoints to step 600 (mean 0.095 m against 0.133), but
-    # farther at all 5 from step 650, where the default builds were 0.06-0.08 m (README, Training:
+    # farther at all 6 from step 650, where the default builds were 0.06-0.09 m (README, Training:
     # a drift of the scale along the path; Quality: trial 36).
     anchor_bundle_scale_degree: int | None = None
     # An exponential moving average of the weights (not in the paper), kept beside them with this
