@@ -90,7 +90,7 @@ def train(
     channels_last: Annotated[bool, typer.Option("--channels-last", help="channels_last memory format (CUDA).")] = False,
     max_steps: Annotated[int | None, typer.Option("--max-steps", help="Stop after this many steps in all (a checkpoint is written).")] = None,
     max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop after this many minutes of training in this process (a checkpoint is written).")] = None,
-    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in -o from its latest checkpoint, exactly, with its own training options: of the options given with it, only how the run runs applies (workers, device, AMP, steps, minutes, epochs, logging, checkpoints, progress, --ema-decay); others are kept at the run's values, with a warning naming them.")] = False,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in -o from its latest checkpoint, exactly, with its own training options: of the options given with it, only how the run runs applies (workers, device, AMP, steps, minutes, epochs, logging, checkpoints, progress, --ema-decay); others are kept at the run's values, with a warning naming them; options not given keep the run's values.")] = False,
     no_lcvs: Annotated[bool, typer.Option("--no-lcvs", help="Ablation w/o LCVS: 2 pairs into the middle frame.")] = False,
     no_dsc: Annotated[bool, typer.Option("--no-dsc", help="Ablation w/o DSC: absolute pose regression head.")] = False,
     pretrained: Annotated[str, typer.Option(help="Encoder start: imagenet, a torchvision resnet18 .pth, or none.")] = "imagenet",

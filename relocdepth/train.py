@@ -480,8 +480,8 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | No
     """The config to use and the checkpoint to resume (None when starting fresh).
 
     A resumed run keeps its own options but takes the run controls (:data:`RUN_CONTROL_FIELDS`)
-    from ``cfg``; of those, the weights' average (``ema_decay``) only where ``given`` names it, so
-    that leaving it out keeps the run's average. ``given``: the places (see
+    from ``cfg`` where ``given`` names them, so that one left out (the weights' average, the
+    checkpoint interval, the step budget) keeps the run's. ``given``: the places (see
     :meth:`TrainConfig.values`) the caller set on purpose; None, those where ``cfg`` differs from
     the defaults. Given values the run keeps over are named in a warning."""
     latest = ckpt_io.latest_checkpoint(run_dir) if run_dir.exists() else None
@@ -500,7 +500,7 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | No
     if given is None:
         default = TrainConfig().values()
         given = [k for k in values if values[k] != default[k]]
-    overrides = {k: values[k] for k in RUN_CONTROL_FIELDS if k != "ema_decay" or k in given}
+    overrides = {k: values[k] for k in RUN_CONTROL_FIELDS if k in given} | {"resume": True}
     ignored = [k for k in given if k not in overrides and k != "model.relpose" and values[k] != kept[k]]
     if ignored:
         log.warning("resuming %s: keeping the run's %s (given values ignored)", run_dir,

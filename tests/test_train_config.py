@@ -144,9 +144,10 @@ def test_checkpoint_with_a_flat_config_resumes_with_its_values(synth_shards: Pat
 
 def test_resume_keeps_what_the_command_line_did_not_give(synth_shards: Path, tmp_path: Path,
                                                         caplog: pytest.LogCaptureFixture) -> None:
-    """``--resume`` alone keeps the run's options, its weights' average included, without warning;
-    a training option given again is kept at the run's value and named; ``--ema-decay 0`` given
-    when resuming ends the average."""
+    """``--resume`` alone keeps the run's options, its weights' average and checkpoint interval
+    included, without warning; a training option given again is kept at the run's value and named;
+    a run control given again (``--checkpoint-every``) is taken; ``--ema-decay 0`` given when
+    resuming ends the average."""
     from relocdepth.cli.main import app
 
     run = tmp_path / "run"
@@ -157,19 +158,21 @@ def test_resume_keeps_what_the_command_line_did_not_give(synth_shards: Path, tmp
         assert r.exit_code == 0, r.output
         return ckpt_io.load_checkpoint(ckpt_io.latest_checkpoint(run))
 
-    reloc("--max-steps", "1", "--lr", "0.0002", "--window", "4", "--ema-decay", "0.9")
+    reloc("--max-steps", "1", "--lr", "0.0002", "--window", "4", "--ema-decay", "0.9", "--checkpoint-every", "7")
     caplog.clear()
     ck = reloc("--max-steps", "2", "--resume")
     assert "given values ignored" not in caplog.text
     saved = TrainConfig.from_dict(ck["meta"]["train"])
-    assert (saved.lr, saved.sampler.window, saved.ema_decay) == (0.0002, 4, 0.9)
+    assert (saved.lr, saved.sampler.window, saved.ema_decay, saved.checkpoint_every) == (0.0002, 4, 0.9, 7)
+    assert saved.max_steps == 2
     assert ck["ema"]["updates"] == 2
     caplog.clear()
     ck = reloc("--max-steps", "3", "--resume", "--lr", "0.001")
     assert "keeping the run's lr = 0.0002 (given values ignored)" in caplog.text
     assert TrainConfig.from_dict(ck["meta"]["train"]).lr == 0.0002 and ck["ema"]["updates"] == 3
-    ck = reloc("--max-steps", "4", "--resume", "--ema-decay", "0")
-    assert ck["ema"] is None and TrainConfig.from_dict(ck["meta"]["train"]).ema_decay == 0.0
+    ck = reloc("--max-steps", "4", "--resume", "--ema-decay", "0", "--checkpoint-every", "9")
+    saved = TrainConfig.from_dict(ck["meta"]["train"])
+    assert ck["ema"] is None and saved.ema_decay == 0.0 and saved.checkpoint_every == 9
 
 
 def test_every_recipe_is_a_valid_config_that_says_what_it_sets() -> None:
