@@ -148,10 +148,11 @@ class TrainConfig:
     anchor_bundle_scale: float = 0.0
     # ... or hold it by a polynomial of this degree along the path, fitted to the depth network's
     # per-frame scale after the adjustment's usual 30 iterations (relocdepth.ba.BAConfig.scale_degree;
-    # None: not; exclusive with anchor_bundle_scale). Offline on a real walk-through run, degree 1:
-    # closer than the default at 9 of 10 checkpoints to step 600 (mean 0.095 m against 0.133), but
-    # farther at all 6 from step 650, where the default builds were 0.06-0.09 m (README, Training:
-    # a drift of the scale along the path; Quality: trial 36).
+    # None: not; exclusive with anchor_bundle_scale). Offline on a real walk-through, degree 1:
+    # closer than the default at 9 of 10 checkpoints to step 600 on seed 0 and at 12 of 12 to 700
+    # on seed 1 (means 0.095 and 0.097 m against 0.133 and 0.138), but farther at all 6 of seed 0's
+    # from step 650, where its network's depth had a drift of its own along the walk (README,
+    # Training: a drift of the scale along the path; Quality: trial 36).
     anchor_bundle_scale_degree: int | None = None
     # An exponential moving average of the weights (not in the paper), kept beside them with this
     # decay per step and written into every checkpoint, whose networks it then is for localisation
