@@ -458,8 +458,9 @@ class _LossModule:
         return TripletLossModule()
 
 
-# The bundle adjustment's iterations where the scale is held along the path (the default 30 stop
-# early, which is what keeps the scale without it: README, Quality, trial 34).
+# The bundle adjustment's iterations where --anchor-bundle-scale holds the scale over a window (the
+# default 30 stop early, which is what keeps the scale without it: README, Quality, trial 34; the
+# polynomial hold of --anchor-bundle-scale-degree keeps the 30, as 100 were no better offline).
 ANCHOR_BUNDLE_ITERATIONS = 100
 
 
@@ -501,7 +502,7 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | No
     if given is None:
         default = TrainConfig().values()
         given = [k for k in values if values[k] != default[k]]
-    overrides = {k: values[k] for k in RUN_CONTROL_FIELDS if k in given} | {"resume": True}
+    overrides = {k: values[k] for k in RUN_CONTROL_FIELDS if k in given or k == "resume"}
     ignored = [k for k in given if k not in overrides and k != "model.relpose" and values[k] != kept[k]]
     if ignored:
         log.warning("resuming %s: keeping the run's %s (given values ignored)", run_dir,
