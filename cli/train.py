@@ -140,16 +140,17 @@ def train(
     given = _given_fields(ctx, dict(locals()))
     from relocdepth.recipes import read_config_file
     from relocdepth.recipes import recipe as recipe_fields
-    from relocdepth.train import TrainConfig
+    from relocdepth.train import TrainConfig, resume_config
     from relocdepth.train import train as run_training
 
     values = TrainConfig.values_of(recipe_fields(recipe))
     if config is not None:
         values.update(read_config_file(config))
     values.update(TrainConfig.values_of(given))
-    cfg = TrainConfig.from_values(values)
-    # What was asked for, so that --resume keeps the run's own value of everything else.
-    summary = run_training(shards, out, cfg, given=set(values))
+    if values.get("resume"):  # the run keeps its own training options: only how it runs is taken from here
+        summary = run_training(shards, out, resume_config(values), given=values)
+    else:
+        summary = run_training(shards, out, TrainConfig.from_values(values), given=set(values))
     if summary["rank"] == 0:
         typer.echo(
             f"trained {summary['steps_this_run']} steps (total {summary['steps']}, epoch {summary['epoch']}, "

@@ -398,6 +398,14 @@ RUN_CONTROL_FIELDS = ("workers", "device", "amp", "amp_dtype", "channels_last", 
                       "progress", "resume", "sampler.epochs", "ema_decay")
 
 
+def resume_config(values: Mapping[str, Any]) -> TrainConfig:
+    """The config that resumes a run with ``values`` (by place) asked for: their run controls over
+    the defaults; pass ``values`` as ``given`` to :func:`train`. A resumed run keeps its own
+    training options, so those asked for are not checked against each other (an option that needs
+    another the run has, given alone, is no error), only named where the run keeps its own."""
+    return TrainConfig.from_values({k: v for k, v in values.items() if k in RUN_CONTROL_FIELDS})
+
+
 @dataclass
 class RunState:
     """What changes as training runs (all of it goes into the checkpoint)."""
@@ -477,7 +485,8 @@ def _anchor_bundle_config(cfg: TrainConfig) -> Any:
     return BAConfig()
 
 
-def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | None = None,
+def _resolve_config(cfg: TrainConfig, run_dir: Path,
+                    given: Collection[str] | Mapping[str, Any] | None = None,
                     ) -> tuple[TrainConfig, dict | None, Path | None]:
     """The config to use and the checkpoint to resume (None when starting fresh).
 
@@ -485,7 +494,9 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | No
     from ``cfg`` where ``given`` names them, so that one left out (the weights' average, the
     checkpoint interval, the step budget) keeps the run's. ``given``: the places (see
     :meth:`TrainConfig.values`) the caller set on purpose; None, those where ``cfg`` differs from
-    the defaults. Given values the run keeps over are named in a warning."""
+    the defaults; or a mapping of them to the values asked for, when these need not make a valid
+    config on their own (see :func:`resume_config`). Given values the run keeps over are named in
+    a warning."""
     latest = ckpt_io.latest_checkpoint(run_dir) if run_dir.exists() else None
     if not cfg.resume:
         if latest is not None:
@@ -502,6 +513,8 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path, given: Collection[str] | No
     if given is None:
         default = TrainConfig().values()
         given = [k for k in values if values[k] != default[k]]
+    elif isinstance(given, Mapping):
+        values = {**values, **given}
     overrides = {k: values[k] for k in RUN_CONTROL_FIELDS if k in given or k == "resume"}
     ignored = [k for k in given if k not in overrides and k != "model.relpose" and values[k] != kept[k]]
     if ignored:
@@ -561,8 +574,8 @@ def _oracle_depth_batch(gt: list[np.ndarray], index: Any, crop: Any, width: int,
     return torch.from_numpy(out)
 
 
-def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig, given: Collection[str] | None = None,
-          ) -> tuple[Trainer, RunState]:
+def setup(shards: str | Path, run_dir: Path, cfg: TrainConfig,
+          given: Collection[str] | Mapping[str, Any] | None = None) -> tuple[Trainer, RunState]:
     import torch
 
     frames = ImageFrames.open(shards)  # user errors before anything is written
@@ -992,12 +1005,13 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
 
 
 def train(shards: str | Path, run_dir: str | Path, cfg: TrainConfig = TrainConfig(),
-          given: Collection[str] | None = None) -> dict[str, Any]:
+          given: Collection[str] | Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Train on ``shards`` into ``run_dir``; returns a summary (steps, stop reason, checkpoint...).
 
     ``given``: the options (places, see :meth:`TrainConfig.values`) set on purpose, e.g. those typed
-    on the command line; a resumed run keeps its own values of the others (None: the options where
-    ``cfg`` differs from the defaults count as given).
+    on the command line, or a mapping of them to their values (see :func:`resume_config`); a
+    resumed run keeps its own values of the others (None: the options where ``cfg`` differs from
+    the defaults count as given).
 
     Raises :class:`UserError` for bad inputs and :class:`TrainingDiverged` when the loss diverges
     (``max_nonfinite`` non-finite losses in a row; the last good checkpoint stays the newest).

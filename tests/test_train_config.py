@@ -147,7 +147,8 @@ def test_resume_keeps_what_the_command_line_did_not_give(synth_shards: Path, tmp
     """``--resume`` alone keeps the run's options, its weights' average and checkpoint interval
     included, without warning; a training option given again is kept at the run's value and named;
     a run control given again (``--checkpoint-every``) is taken; ``--ema-decay 0`` given when
-    resuming ends the average."""
+    resuming ends the average; training options given are not checked against each other, run
+    controls are."""
     from relocdepth.cli.main import app
 
     run = tmp_path / "run"
@@ -173,6 +174,15 @@ def test_resume_keeps_what_the_command_line_did_not_give(synth_shards: Path, tmp
     ck = reloc("--max-steps", "4", "--resume", "--ema-decay", "0", "--checkpoint-every", "9")
     saved = TrainConfig.from_dict(ck["meta"]["train"])
     assert ck["ema"] is None and saved.ema_decay == 0.0 and saved.checkpoint_every == 9
+    # A training option that needs another (here --anchor-bundle) is no error when resuming: the
+    # run keeps its own value of both; only the run controls given must make sense.
+    caplog.clear()
+    ck = reloc("--max-steps", "5", "--resume", "--anchor-bundle-scale-degree", "2")
+    assert "keeping the run's anchor_bundle_scale_degree = None (given values ignored)" in caplog.text
+    assert TrainConfig.from_dict(ck["meta"]["train"]).anchor_bundle_scale_degree is None
+    r = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(run), *common, "--resume",
+                                 "--max-minutes", "-1"])
+    assert r.exit_code == 2 and "--max-minutes must be > 0" in r.output
 
 
 def test_every_recipe_is_a_valid_config_that_says_what_it_sets() -> None:
