@@ -485,6 +485,10 @@ def _anchor_bundle_config(cfg: TrainConfig) -> Any:
     return BAConfig()
 
 
+def _as_tuples(value: Any) -> Any:
+    return tuple(_as_tuples(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
 def _resolve_config(cfg: TrainConfig, run_dir: Path,
                     given: Collection[str] | Mapping[str, Any] | None = None,
                     ) -> tuple[TrainConfig, dict | None, Path | None]:
@@ -513,8 +517,8 @@ def _resolve_config(cfg: TrainConfig, run_dir: Path,
     if given is None:
         default = TrainConfig().values()
         given = [k for k in values if values[k] != default[k]]
-    elif isinstance(given, Mapping):
-        values = {**values, **given}
+    elif isinstance(given, Mapping):  # as asked (lists, from a config file, as the config's tuples)
+        values = {**values, **{k: _as_tuples(v) for k, v in given.items()}}
     overrides = {k: values[k] for k in RUN_CONTROL_FIELDS if k in given or k == "resume"}
     ignored = [k for k in given if k not in overrides and k != "model.relpose" and values[k] != kept[k]]
     if ignored:

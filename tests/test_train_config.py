@@ -185,6 +185,25 @@ def test_resume_keeps_what_the_command_line_did_not_give(synth_shards: Path, tmp
     assert r.exit_code == 2 and "--max-minutes must be > 0" in r.output
 
 
+def test_resume_with_the_runs_own_config_file_warns_of_nothing(synth_shards: Path, tmp_path: Path,
+                                                               caplog: pytest.LogCaptureFixture) -> None:
+    """A config file given again when resuming, with the run's own values (lists, as YAML has
+    them, where the config holds tuples), is no value the run keeps over: no warning."""
+    from relocdepth.cli.main import app
+
+    run, conf = tmp_path / "run", tmp_path / "run.yaml"
+    conf.write_text("window_schedule: [[0, 2], [5, 3]]\nlr: 0.0002\n")
+    common = ["--size", "64x64", "--batch-size", "1", "--pretrained", "none", "--workers", "0", "--no-progress",
+              "--config", str(conf)]
+    for args in (["--max-steps", "1"], ["--max-steps", "2", "--resume"]):
+        caplog.clear()
+        r = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(run), *common, *args])
+        assert r.exit_code == 0, r.output
+    assert "given values ignored" not in caplog.text
+    saved = TrainConfig.from_dict(ckpt_io.load_checkpoint(ckpt_io.latest_checkpoint(run))["meta"]["train"])
+    assert saved.sampler.window_schedule == ((0, 2), (5, 3)) and saved.lr == 0.0002 and saved.max_steps == 2
+
+
 def test_every_recipe_is_a_valid_config_that_says_what_it_sets() -> None:
     from relocdepth.recipes import RECIPES
 
