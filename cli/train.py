@@ -147,10 +147,9 @@ def train(
     if config is not None:
         values.update(read_config_file(config))
     values.update(TrainConfig.values_of(given))
-    if values.get("resume"):  # the run keeps its own training options: only how it runs is taken from here
-        summary = run_training(shards, out, resume_config(values), given=values)
-    else:
-        summary = run_training(shards, out, TrainConfig.from_values(values), given=set(values))
+    # A resumed run keeps its own training options: only how it runs is taken from here.
+    cfg = resume_config(values) if values.get("resume") else TrainConfig.from_values(values)
+    summary = run_training(shards, out, cfg, given=values)
     if summary["rank"] == 0:
         typer.echo(
             f"trained {summary['steps_this_run']} steps (total {summary['steps']}, epoch {summary['epoch']}, "

@@ -62,6 +62,11 @@ def _paper_model() -> ModelConfig:
     return ModelConfig(pretrained="imagenet")  # paper III-D: ImageNet-pretrained encoders
 
 
+def _as_tuples(value: Any) -> Any:
+    """``value`` with its lists (as YAML/JSON give them) as the config's tuples, nested too."""
+    return tuple(_as_tuples(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """What a training run is given: the sampler, augmentation, method and model configs, which
@@ -327,8 +332,7 @@ class TrainConfig:
                 raise UserError(f"unknown option {place}")
             (sections[key] if key else own)[name] = value
         if "window_schedule" in sections["sampler"]:
-            sections["sampler"]["window_schedule"] = tuple(
-                tuple(x) for x in sections["sampler"]["window_schedule"])
+            sections["sampler"]["window_schedule"] = _as_tuples(sections["sampler"]["window_schedule"])
         default = cls()
         built = {}
         for key, given in sections.items():
@@ -483,10 +487,6 @@ def _anchor_bundle_config(cfg: TrainConfig) -> Any:
     if cfg.anchor_bundle_scale:
         return BAConfig(max_iterations=ANCHOR_BUNDLE_ITERATIONS, scale_window=cfg.anchor_bundle_scale)
     return BAConfig()
-
-
-def _as_tuples(value: Any) -> Any:
-    return tuple(_as_tuples(v) for v in value) if isinstance(value, (list, tuple)) else value
 
 
 def _resolve_config(cfg: TrainConfig, run_dir: Path,
