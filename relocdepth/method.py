@@ -49,6 +49,12 @@ class MethodConfig:
     alpha: float = 0.85  # SSIM weight in L_p (monodepth2)
     w_s: float = 0.001  # smoothness weight
     w_c: float = 0.03  # pose-coordinate weight
+    # Weight of L_g, the disagreement of each warped pair's depths (the target's depth carried into
+    # the source against the source's own, at full resolution; relocdepth.geometry.depth_disagreement):
+    # not the paper's (SC-SfMLearner's geometry consistency). It ties the frames' depth scales to
+    # each other directly, where L_p ties them only through the parallax they explain. 0: off (still
+    # measured, as the diagnostic ``depth_disagreement``).
+    w_depth_consistency: float = 0.0
     num_scales: int = 4  # decoder scales used in the loss
     # Pixels L_p averages over: "valid" (in the source image, positive depth; DESIGN.md) or "all"
     # (monodepth2: border-padded samples count too). "valid" can be gamed by warping off-image
@@ -71,6 +77,8 @@ class MethodConfig:
             raise ValueError(f"photometric_pixels must be one of {PHOTOMETRIC_PIXELS}, not {self.photometric_pixels!r}")
         if self.loss_resolution not in LOSS_RESOLUTIONS:
             raise ValueError(f"loss_resolution must be one of {LOSS_RESOLUTIONS}, not {self.loss_resolution!r}")
+        if not self.w_depth_consistency >= 0:
+            raise ValueError(f"w_depth_consistency must be >= 0, not {self.w_depth_consistency}")
 
 
 @dataclass(frozen=True)
@@ -211,15 +219,16 @@ def triplet_loss(
         ``L_c``; ``L_p/scale{k}`` and ``L_s/scale{k}`` (k = 0 full resolution ... 3; L_p of scale k
         warped at the input size or at scale k's own size, as ``cfg.loss_resolution`` says);
         ``L_p/pair_{t}{s}`` (target t synthesised from source s, mean over scales and batch).
-        ``total = L_p + w_s L_s + w_c L_c``; L_p and L_s are means over scales (L_s of scale k
+        ``total = L_p + w_s L_s + w_c L_c`` (``+ w_depth_consistency L_g`` with ``parts["L_g"]``
+        when that weight is set); L_p and L_s are means over scales (L_s of scale k
         weighted 1/2^k as monodepth2), pairs and batch; L_s over the frames used as targets.
 
         ``diagnostics`` (floats): ``centre_spread`` (RMS distance of the batch's camera centres to
         their mean), ``rot_spread_deg`` (mean angle of its rotations to their mean), ``rel_trans``
         and ``rel_rot_deg`` (mean size of the relative poses of the pairs), ``cell_spread`` (mean
         per-image L_c; 0 w/o DSC), ``valid_frac`` (valid-pixel fraction at scale 0),
-        ``median_depth``, and ``lp_identity`` (L_p of the unwarped source images: the no-motion
-        reference that L_p must beat). With an active ``boot``: ``parts["L_boot"]`` (the consistency
+        ``median_depth``, ``lp_identity`` (L_p of the unwarped source images: the no-motion
+        reference that L_p must beat) and ``depth_disagreement`` (L_g, whether weighted or not). With an active ``boot``: ``parts["L_boot"]`` (the consistency
         of the DSC's relative poses with the bootstrap's, added with weight ``boot.w_consistency``)
         and diagnostics ``boot_warps`` (1 when the warps use the bootstrap poses), ``boot_rel_trans``,
         ``boot_rel_rot_deg`` (size of the bootstrap's relative poses) and ``dsc_boot_trans``,
@@ -392,7 +401,14 @@ def _triplet_loss_fp32(
     L_p = torch.stack(lp_scales).mean()
     L_s = torch.stack(ls_scales).mean()
     L_c = l_c_img.mean() if l_c_img is not None else images.new_zeros(())
+    with torch.set_grad_enabled(torch.is_grad_enabled() and cfg.w_depth_consistency > 0):
+        depth0 = depths[0].reshape(B, 3, 1, H, W)
+        g_img, g_valid = geo.depth_disagreement(flat(depth0[:, t_idx]), flat(depth0[:, s_idx]), T_t2s, K_t, K_s)
+        L_g = (g_img * g_valid).sum() / g_valid.sum().clamp(min=1)
     total = L_p + cfg.w_s * L_s + cfg.w_c * L_c
+    if cfg.w_depth_consistency > 0:
+        total = total + cfg.w_depth_consistency * L_g
+        parts["L_g"] = L_g
     if "L_boot" in boot_parts and boot is not None and boot.w_consistency > 0:
         total = total + boot.w_consistency * boot_parts["L_boot"]
     if "L_dir" in boot_parts and boot is not None:
@@ -408,6 +424,7 @@ def _triplet_loss_fp32(
         ones = torch.ones_like(I_t[:, :1])
         diag["lp_identity"] = float(photometric_loss(I_t, I_s, ones, cfg.alpha).mean())
         diag["valid_frac"] = valid_frac
+        diag["depth_disagreement"] = float(L_g.detach())
         diag.update(boot_diag)
     return total, parts, diag
 

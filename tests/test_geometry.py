@@ -170,6 +170,41 @@ def test_warp_identity_and_validity() -> None:
     assert not bool(valid.any())
 
 
+def test_depth_disagreement_of_two_exact_views_of_a_plane() -> None:
+    """Zero for the true depths under the true pose; (s - 1) / (s + 1) when the source's depth is
+    s times too deep; unchanged by a common scale of both depths and the translation."""
+    H, W = 48, 64
+    K = _K(1, W, H, f=60.0)
+    T_t = geo.pose_vector_to_matrix(torch.tensor([0.02, -0.03, 0.01, 0.0, 0.0, 0.0], dtype=D64))
+    T_s = geo.pose_vector_to_matrix(torch.tensor([-0.03, 0.05, 0.02, 0.12, -0.05, 0.08], dtype=D64))
+    _, D_t = _plane_view(T_t, K[0], H, W)
+    _, D_s = _plane_view(T_s, K[0], H, W)
+    T_ts = geo.relative_pose(T_t[None], T_s[None])
+
+    def mean(g: torch.Tensor, valid: torch.Tensor) -> float:
+        return float((g * valid).sum() / valid.sum())
+
+    g, valid = geo.depth_disagreement(D_t, D_s, T_ts, K, K)
+    _, valid_warp = geo.warp(D_s, D_t, T_ts, K, K)
+    assert torch.equal(valid, valid_warp) and 0.7 < float(valid.mean()) < 1.0
+    assert mean(g, valid) < 1e-4 and float(g.max()) < 2e-3  # bilinear sampling of an exact plane
+    g, valid = geo.depth_disagreement(D_t, 1.2 * D_s, T_ts, K, K)
+    assert mean(g, valid) == pytest.approx(0.2 / 2.2, abs=2e-4)
+    T_scaled = T_ts.clone()
+    T_scaled[:, :3, 3] *= 3.0
+    g3, _ = geo.depth_disagreement(3.0 * D_t, 3.0 * 1.2 * D_s, T_scaled, K, K)
+    assert torch.allclose(g3, g, atol=1e-9)
+    # a wrong translation's length shows: the target's points land too near or too far
+    T_long = T_ts.clone()
+    T_long[:, :3, 3] *= 4.0
+    g, valid = geo.depth_disagreement(D_t, D_s, T_long, K, K)
+    assert mean(g, valid) > 0.01
+    behind = T_ts.clone()
+    behind[:, 2, 3] = -10.0  # no point in front of the source: nothing to disagree on
+    g, valid = geo.depth_disagreement(D_t, D_s, behind, K, K)
+    assert not bool(valid.any()) and float(g.abs().max()) == 0.0
+
+
 # -------------------------------------------------------------------------------------- gradcheck
 
 
@@ -198,6 +233,19 @@ def test_gradcheck_warp() -> None:
         return geo.warp(img, depth, geo.pose_vector_to_matrix(pose), K, K)[0]
 
     assert torch.autograd.gradcheck(fn, (img, depth, pose), atol=1e-6)
+
+
+def test_gradcheck_depth_disagreement() -> None:
+    gen = torch.Generator().manual_seed(7)
+    depth_t = (2 + torch.rand(1, 1, 6, 7, generator=gen, dtype=D64)).requires_grad_()
+    depth_s = (2.5 + torch.rand(1, 1, 6, 7, generator=gen, dtype=D64)).requires_grad_()
+    pose = torch.tensor([[0.01, -0.02, 0.015, 0.05, 0.03, -0.02]], dtype=D64, requires_grad=True)
+    K = _K(1, 7, 6, f=8.0)
+
+    def fn(depth_t: torch.Tensor, depth_s: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+        return geo.depth_disagreement(depth_t, depth_s, geo.pose_vector_to_matrix(pose), K, K)[0]
+
+    assert torch.autograd.gradcheck(fn, (depth_t, depth_s, pose), atol=1e-6)
 
 
 def test_log_map_gradients_finite_at_zero_and_pi() -> None:

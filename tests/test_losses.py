@@ -250,6 +250,27 @@ def test_photometric_pixels_option_is_wired() -> None:
         MethodConfig(photometric_pixels="some")
 
 
+def test_depth_consistency_weight_is_wired() -> None:
+    """L_g is measured either way (diagnostic ``depth_disagreement``), added to the total and
+    trained only with its weight set; its gradient reaches the depth network."""
+    torch.manual_seed(0)
+    nets = build_networks(ModelConfig())
+    imgs, Kb = _triplet(4, B=2), _K(2, 3)
+    total0, parts0, diag0 = triplet_loss(nets, imgs, imgs, Kb, MethodConfig())
+    assert "L_g" not in parts0 and 0 < diag0["depth_disagreement"] < 1
+    cfg = MethodConfig(w_depth_consistency=0.5)
+    total, parts, diag = triplet_loss(nets, imgs, imgs, Kb, cfg)
+    assert diag["depth_disagreement"] == pytest.approx(diag0["depth_disagreement"], rel=1e-5)
+    assert float(parts["L_g"].detach()) == pytest.approx(diag["depth_disagreement"], rel=1e-6)
+    assert torch.allclose(total, total0 + 0.5 * parts["L_g"], atol=1e-6)
+    nets.zero_grad()
+    parts["L_g"].backward()
+    grads = [p.grad for p in nets.depth.parameters() if p.grad is not None]
+    assert grads and sum(float(g.abs().sum()) for g in grads) > 0
+    with pytest.raises(ValueError, match="w_depth_consistency"):
+        MethodConfig(w_depth_consistency=-0.1)
+
+
 @pytest.mark.parametrize("loss_resolution", LOSS_RESOLUTIONS)
 def test_recompute_warps_gives_the_same_loss_and_gradients(loss_resolution: str) -> None:
     """Checkpointing the warps/SSIM trades memory for time; values and gradients must not change."""
@@ -368,11 +389,14 @@ def test_train_options_reach_the_method_and_networks(tmp_path: Path) -> None:
 
     from relocdepth.train import TrainConfig
 
-    cfg = TrainConfig.from_dict({"loss_resolution": "input", "decoder_bn": True})
-    assert cfg.method.loss_resolution == "input" and cfg.model.decoder_bn
+    cfg = TrainConfig.from_dict({"loss_resolution": "input", "decoder_bn": True, "w_depth_consistency": 0.5})
+    assert cfg.method.loss_resolution == "input" and cfg.model.decoder_bn and cfg.method.w_depth_consistency == 0.5
     cfg = TrainConfig()  # the paper's: each layer's size
     assert cfg.method.loss_resolution == "decoder" and not cfg.model.decoder_bn
     run = tmp_path / "run"
     res = CliRunner().invoke(app, ["train", str(tmp_path), "-o", str(run), "--loss-resolution", "output"])
     assert res.exit_code == 2 and "--loss-resolution must be one of input, decoder" in res.output
+    assert len(res.output.strip().splitlines()) == 1 and not run.exists()
+    res = CliRunner().invoke(app, ["train", str(tmp_path), "-o", str(run), "--w-depth-consistency", "-1"])
+    assert res.exit_code == 2 and "w_depth_consistency must be >= 0" in res.output
     assert len(res.output.strip().splitlines()) == 1 and not run.exists()

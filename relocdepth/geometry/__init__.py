@@ -13,7 +13,8 @@ Where each part of the paper lives (submodules of this package):
   (training) or median (test); their spread (confidence);
 - ``poses``: ``T(P)``, inverse, pose errors;
 - ``intrinsics`` (III-B): ``K`` after a resize, back-projection ``D K^-1 p``;
-- ``warp`` (III-B): ``T_{t->s} = T(P_s)^-1 T(P_t)`` and the warp ``K_s T_{t->s} D_t K_t^-1 p``;
+- ``warp`` (III-B): ``T_{t->s} = T(P_s)^-1 T(P_t)`` and the warp ``K_s T_{t->s} D_t K_t^-1 p`` (and,
+  not the paper's, the disagreement of two frames' depths under it);
 - ``lcvs`` (III-C): loop-closed view synthesis, the pairs of a triplet that are warped.
 """
 
@@ -44,7 +45,7 @@ from relocdepth.geometry.rotations import (
     so3_exp,
     so3_log,
 )
-from relocdepth.geometry.warp import MIN_WARP_DEPTH, relative_pose, warp
+from relocdepth.geometry.warp import MIN_WARP_DEPTH, depth_disagreement, relative_pose, warp
 
 __all__ = [
     "DSC_STRIDE",
@@ -56,6 +57,7 @@ __all__ = [
     "cell_poses",
     "cell_rays",
     "check_image_size",
+    "depth_disagreement",
     "dsc_cell_centres",
     "dsc_from_pose",
     "dsc_grid_size",

@@ -43,6 +43,38 @@ def warp(
         >>> T_ts = relative_pose(T_wc_t, T_wc_s)
         >>> I_hat, valid = warp(I_s, D_t, T_ts, K_t, K_s)
     """
+    grid, _, valid = _project(depth_t, T_t2s, K_t, K_s)
+    warped = F.grid_sample(image_s, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return warped, valid.to(image_s.dtype)
+
+
+def depth_disagreement(
+    depth_t: Tensor, depth_s: Tensor, T_t2s: Tensor, K_t: Tensor, K_s: Tensor
+) -> tuple[Tensor, Tensor]:
+    """How far the target's depth, carried into the source camera, is from the source's own depth.
+
+    Each target pixel's point ``T_{t->s} D_t K_t^-1 p`` lands at depth ``z`` in front of the source
+    camera, where the source's depth map says ``D_s(p')`` (bilinear at its projection ``p'``); the
+    disagreement is ``|z - D_s(p')| / (z + D_s(p'))``, in [0, 1) and unchanged by a common scale of
+    the two depths and the translation (SC-SfMLearner's geometry consistency, Bian et al. 2019).
+
+    Args:
+        depth_t, depth_s: ``(B, 1, H, W)`` target and source depth (same size).
+        T_t2s, K_t, K_s: as for :func:`warp`.
+
+    Returns:
+        ``disagreement (B, 1, H, W)`` and the ``valid (B, 1, H, W)`` float mask of :func:`warp`
+        (0 disagreement where not valid).
+    """
+    grid, z, valid = _project(depth_t, T_t2s, K_t, K_s)
+    d_s = F.grid_sample(depth_s, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    z = torch.where(valid, z, d_s.detach())  # invalid: no disagreement, no gradient
+    return (z - d_s).abs() / (z + d_s), valid.to(depth_t.dtype)
+
+
+def _project(depth_t: Tensor, T_t2s: Tensor, K_t: Tensor, K_s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Target pixels' points in the source camera: ``grid (B, H, W, 2)`` for ``grid_sample``, their
+    depth ``z (B, 1, H, W)`` there and ``valid (B, 1, H, W)`` (bool; see :func:`warp`)."""
     B, _, H, W = depth_t.shape
     pts = backproject(depth_t, K_t).reshape(B, 3, -1)
     pts_s = T_t2s[:, :3, :3] @ pts + T_t2s[:, :3, 3:]
@@ -55,8 +87,6 @@ def warp(
     # half-pixel rim samples the border pixel, and an identity warp stays valid despite roundoff
     u, v = uv[..., 0], uv[..., 1]
     inside = (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
-    valid = (inside & in_front.reshape(B, H, W)).unsqueeze(1).to(image_s.dtype)
+    valid = (inside & in_front.reshape(B, H, W)).unsqueeze(1)
     # kornia maps pixel indices to [-1, 1] with pixel centres at +-1 (align_corners=True).
-    grid = normalize_pixel_coordinates(uv, H, W)
-    warped = F.grid_sample(image_s, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return warped, valid
+    return normalize_pixel_coordinates(uv, H, W), z.reshape(B, 1, H, W), valid
