@@ -52,8 +52,7 @@ class MethodConfig:
     # Weight of L_g, the disagreement of each warped pair's depths (the target's depth carried into
     # the source against the source's own, at full resolution; relocdepth.geometry.depth_disagreement):
     # not the paper's (SC-SfMLearner's geometry consistency). It ties the frames' depth scales to
-    # each other directly, where L_p ties them only through the parallax they explain. 0: off (still
-    # measured, as the diagnostic ``depth_disagreement``).
+    # each other directly, where L_p ties them only through the parallax they explain. 0: off.
     w_depth_consistency: float = 0.0
     num_scales: int = 4  # decoder scales used in the loss
     # Pixels L_p averages over: "valid" (in the source image, positive depth; DESIGN.md) or "all"
@@ -228,7 +227,7 @@ def triplet_loss(
         and ``rel_rot_deg`` (mean size of the relative poses of the pairs), ``cell_spread`` (mean
         per-image L_c; 0 w/o DSC), ``valid_frac`` (valid-pixel fraction at scale 0),
         ``median_depth``, ``lp_identity`` (L_p of the unwarped source images: the no-motion
-        reference that L_p must beat) and ``depth_disagreement`` (L_g, whether weighted or not). With an active ``boot``: ``parts["L_boot"]`` (the consistency
+        reference that L_p must beat). With an active ``boot``: ``parts["L_boot"]`` (the consistency
         of the DSC's relative poses with the bootstrap's, added with weight ``boot.w_consistency``)
         and diagnostics ``boot_warps`` (1 when the warps use the bootstrap poses), ``boot_rel_trans``,
         ``boot_rel_rot_deg`` (size of the bootstrap's relative poses) and ``dsc_boot_trans``,
@@ -401,14 +400,12 @@ def _triplet_loss_fp32(
     L_p = torch.stack(lp_scales).mean()
     L_s = torch.stack(ls_scales).mean()
     L_c = l_c_img.mean() if l_c_img is not None else images.new_zeros(())
-    with torch.set_grad_enabled(torch.is_grad_enabled() and cfg.w_depth_consistency > 0):
+    total = L_p + cfg.w_s * L_s + cfg.w_c * L_c
+    if cfg.w_depth_consistency > 0:  # (a warp's cost: not computed otherwise)
         depth0 = depths[0].reshape(B, 3, 1, H, W)
         g_img, g_valid = geo.depth_disagreement(flat(depth0[:, t_idx]), flat(depth0[:, s_idx]), T_t2s, K_t, K_s)
-        L_g = (g_img * g_valid).sum() / g_valid.sum().clamp(min=1)
-    total = L_p + cfg.w_s * L_s + cfg.w_c * L_c
-    if cfg.w_depth_consistency > 0:
-        total = total + cfg.w_depth_consistency * L_g
-        parts["L_g"] = L_g
+        parts["L_g"] = (g_img * g_valid).sum() / g_valid.sum().clamp(min=1)
+        total = total + cfg.w_depth_consistency * parts["L_g"]
     if "L_boot" in boot_parts and boot is not None and boot.w_consistency > 0:
         total = total + boot.w_consistency * boot_parts["L_boot"]
     if "L_dir" in boot_parts and boot is not None:
@@ -424,7 +421,6 @@ def _triplet_loss_fp32(
         ones = torch.ones_like(I_t[:, :1])
         diag["lp_identity"] = float(photometric_loss(I_t, I_s, ones, cfg.alpha).mean())
         diag["valid_frac"] = valid_frac
-        diag["depth_disagreement"] = float(L_g.detach())
         diag.update(boot_diag)
     return total, parts, diag
 
