@@ -226,7 +226,7 @@ def triplet_loss(
         their mean), ``rot_spread_deg`` (mean angle of its rotations to their mean), ``rel_trans``
         and ``rel_rot_deg`` (mean size of the relative poses of the pairs), ``cell_spread`` (mean
         per-image L_c; 0 w/o DSC), ``valid_frac`` (valid-pixel fraction at scale 0),
-        ``median_depth``, ``lp_identity`` (L_p of the unwarped source images: the no-motion
+        ``median_depth``, and ``lp_identity`` (L_p of the unwarped source images: the no-motion
         reference that L_p must beat). With an active ``boot``: ``parts["L_boot"]`` (the consistency
         of the DSC's relative poses with the bootstrap's, added with weight ``boot.w_consistency``)
         and diagnostics ``boot_warps`` (1 when the warps use the bootstrap poses), ``boot_rel_trans``,

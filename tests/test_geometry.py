@@ -222,30 +222,21 @@ def test_gradcheck_cell_poses() -> None:
     assert torch.autograd.gradcheck(fn, (dsc, depth))
 
 
-def test_gradcheck_warp() -> None:
+def test_gradcheck_warp_and_depth_disagreement() -> None:
     gen = torch.Generator().manual_seed(6)
     img = torch.rand(1, 1, 6, 7, generator=gen, dtype=D64, requires_grad=True)
     depth = (2 + torch.rand(1, 1, 6, 7, generator=gen, dtype=D64)).requires_grad_()
-    pose = torch.tensor([[0.01, -0.02, 0.015, 0.05, 0.03, -0.02]], dtype=D64, requires_grad=True)
-    K = _K(1, 7, 6, f=8.0)
-
-    def fn(img: torch.Tensor, depth: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-        return geo.warp(img, depth, geo.pose_vector_to_matrix(pose), K, K)[0]
-
-    assert torch.autograd.gradcheck(fn, (img, depth, pose), atol=1e-6)
-
-
-def test_gradcheck_depth_disagreement() -> None:
-    gen = torch.Generator().manual_seed(7)
-    depth_t = (2 + torch.rand(1, 1, 6, 7, generator=gen, dtype=D64)).requires_grad_()
     depth_s = (2.5 + torch.rand(1, 1, 6, 7, generator=gen, dtype=D64)).requires_grad_()
     pose = torch.tensor([[0.01, -0.02, 0.015, 0.05, 0.03, -0.02]], dtype=D64, requires_grad=True)
     K = _K(1, 7, 6, f=8.0)
 
-    def fn(depth_t: torch.Tensor, depth_s: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-        return geo.depth_disagreement(depth_t, depth_s, geo.pose_vector_to_matrix(pose), K, K)[0]
+    def fn(
+        img: torch.Tensor, depth: torch.Tensor, depth_s: torch.Tensor, pose: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
+        T = geo.pose_vector_to_matrix(pose)
+        return geo.warp(img, depth, T, K, K)[0], geo.depth_disagreement(depth, depth_s, T, K, K)[0]
 
-    assert torch.autograd.gradcheck(fn, (depth_t, depth_s, pose), atol=1e-6)
+    assert torch.autograd.gradcheck(fn, (img, depth, depth_s, pose), atol=1e-6)
 
 
 def test_log_map_gradients_finite_at_zero_and_pi() -> None:
