@@ -153,6 +153,36 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
                    pnp=sum(len(t.pnp) for t in w.trajs))
 
 
+def combine_builds(builds: list[np.ndarray]) -> np.ndarray:
+    """One set of anchors ``(N, 4, 4)`` float32 from several builds of them ``[(N, 4, 4), ...]``,
+    oldest first: per frame the median of its centres (coordinate by coordinate) and the chordal
+    mean of its orientations, each older build first scaled into the newest one's units (the
+    least-squares scale of its centres onto the newest's). Every ``vo`` build puts the world at
+    the first sequence's first frame and differs from the next one in the depth network's units
+    and in its errors, so only the scale is fitted: a similarity fitted over all the centres
+    would spread a build's drift along the path over the whole of it. With three builds, one
+    that has gone astray is outvoted frame by frame where two agree."""
+    if not builds:
+        raise ValueError("combine_builds needs at least one build")
+    new = np.asarray(builds[-1], np.float64)
+    T = [np.asarray(b, np.float64) for b in builds]
+    if any(b.shape != new.shape for b in T):
+        raise ValueError(f"builds of different shapes: {[b.shape for b in T]}")
+    c_new = new[:, :3, 3]
+    centres = []
+    for b in T:
+        c = b[:, :3, 3]
+        denom = float(np.sum(c * c))
+        centres.append(c * (float(np.sum(c * c_new)) / denom if denom > 0 else 1.0))
+    out = new.copy()
+    out[:, :3, 3] = np.median(np.stack(centres), axis=0)
+    U, _, Vt = np.linalg.svd(np.sum([b[:, :3, :3] for b in T], axis=0))
+    flip = np.sign(np.linalg.det(U @ Vt))
+    U[:, :, 2] *= np.where(flip == 0, 1.0, flip)[:, None]
+    out[:, :3, :3] = U @ Vt
+    return out.astype(np.float32)
+
+
 class _Upsampled:
     """Depth maps resized (bilinear) to ``size (W, H)`` when asked."""
 

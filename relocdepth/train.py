@@ -159,6 +159,10 @@ class TrainConfig:
     # from step 650, where its network's depth had a drift of its own along the walk (README,
     # Training: a drift of the scale along the path; Quality: trial 36).
     anchor_bundle_scale_degree: int | None = None
+    # "vo": the anchors are the last this many builds combined (relocdepth.anchors.combine_builds:
+    # per frame the median centre and the mean orientation, the older builds scaled into the
+    # newest's units); until there are that many, the newest alone (1: the newest build, always).
+    anchor_combine: int = 1
     # An exponential moving average of the weights (not in the paper), kept beside them with this
     # decay per step and written into every checkpoint, whose networks it then is for localisation
     # and evaluation (0: none). Training itself (the anchors too) uses the raw weights, so a run
@@ -246,6 +250,10 @@ class TrainConfig:
                                 "path's scale: give one")
             if self.anchor_bundle_scale_degree < 0:
                 raise UserError(f"--anchor-bundle-scale-degree must be >= 0, not {self.anchor_bundle_scale_degree}")
+        if self.anchor_combine < 1:
+            raise UserError(f"--anchor-combine must be a number of builds >= 1, not {self.anchor_combine}")
+        if self.anchor_combine > 1 and self.anchor != "vo":
+            raise UserError("--anchor-combine needs --anchor vo (it combines the odometry's builds)")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         if not (self.w_direction >= 0 and math.isfinite(self.w_direction)):
@@ -425,6 +433,8 @@ class RunState:
     timing: dict[str, float] = field(default_factory=dict)
     anchors: Any = None  # (N, 4, 4) float32 tensor: the DSC's anchors (TrainConfig.anchor), else None
     anchors_step: int | None = None  # the step they were built at (or a build was not used)
+    # the last builds as built, oldest first (TrainConfig.anchor_combine of them at most): (N, 4, 4) tensors
+    anchor_builds: list = field(default_factory=list)
 
 
 @dataclass
@@ -705,6 +715,7 @@ def _restore(ck: dict[str, Any], nets: Any, optimizer: Any, scaler: Any, state: 
     _set_rng_state(ck["rng"])
     if ck.get("anchors"):
         state.anchors, state.anchors_step = ck["anchors"]["T_wc"], int(ck["anchors"]["step"])
+        state.anchor_builds = list(ck["anchors"].get("builds") or [state.anchors])
 
 
 def checkpoint(tr: Trainer, state: RunState) -> None:
@@ -730,7 +741,8 @@ def checkpoint(tr: Trainer, state: RunState) -> None:
         "meta": meta, "model": tr.nets.state_dict(), "optimizer": tr.optimizer.state_dict(),
         "scaler": tr.scaler.state_dict() if tr.scaler.is_enabled() else None,
         "sampler": {"epoch": state.epoch, "position": state.position}, "rng": _rng_state(),
-        "anchors": None if state.anchors is None else {"T_wc": state.anchors, "step": state.anchors_step},
+        "anchors": None if state.anchors is None else {"T_wc": state.anchors, "step": state.anchors_step,
+                                                       "builds": state.anchor_builds},
         "ema": None if tr.ema is None else tr.ema.state_dict(),
     }, keep_last=tr.cfg.keep_last)
     state.last_checkpoint = str(path)
@@ -828,15 +840,25 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
                     "(%s); %s", state.step, len(a.unlinked), len(a.registration) + 1, A.MIN_LINK_INLIERS,
                     weak, "no anchors yet" if state.anchors is None else "keeping the previous ones")
     used = not a.unlinked
+    combined = 0  # builds the anchors were combined from (0: this one not used)
     state.anchors_step = state.step  # also when not used: the next try comes anchor_every steps on
     if used:
-        state.anchors = torch.from_numpy(a.T_wc)
+        k = tr.cfg.anchor_combine
+        state.anchor_builds = ([*state.anchor_builds, torch.from_numpy(a.T_wc)])[-k:]
+        if k > 1 and len(state.anchor_builds) == k:
+            state.anchors = torch.from_numpy(A.combine_builds([b.numpy() for b in state.anchor_builds]))
+            how += f", combined with the {k - 1} builds before"
+            combined = k
+        else:
+            state.anchors = torch.from_numpy(a.T_wc)
+            combined = 1
         reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
         log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
                  registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
                  turn_measured=a.turn_measured, aligned=a.aligned, bundled=a.bundled, pnp=a.pnp,
-                 track_size=None if a.track_size is None else list(a.track_size), used=used)
+                 track_size=None if a.track_size is None else list(a.track_size), used=used,
+                 combined=combined)
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:

@@ -122,6 +122,10 @@ def test_anchor_schedule_and_options() -> None:
                                    field: value})
         with pytest.raises(UserError, match=f"{option} must be >= 0"):
             TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", field: -1})
+    with pytest.raises(UserError, match="--anchor-combine must be a number of builds >= 1"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_combine": 0})
+    with pytest.raises(UserError, match="--anchor-combine needs --anchor vo"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked", "anchor_combine": 3})
     with pytest.raises(UserError, match="--anchor-bundle-scale needs --anchor-bundle"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_bundle_scale": 20})
     for bad in (-1.0, float("nan")):
@@ -477,6 +481,69 @@ def _walk(n: int = 60) -> np.ndarray:
         T[k, :3, :3] = geo.so3_exp(torch.tensor([[0.1 * np.sin(5 * a), 0.6 * a, 0.05]],
                                                  dtype=torch.float64))[0].numpy()
     return T
+
+
+def test_combined_builds_outvote_a_build_gone_astray() -> None:
+    """Three builds of a known walk in different units (0.5x, 1.3x), the middle one gone astray
+    (its path drifting in scale and turning away from the first frame, its orientations turned
+    6 deg): combined, the centres are the newest build's exactly and the orientations turned by
+    the chordal mean's atan(sin 6 / (2 + cos 6)) = 2.0 deg; the result is in the newest build's
+    units whichever that is; one build is itself."""
+    from relocdepth.anchors import combine_builds
+
+    T = _walk()
+    s = np.linspace(0.0, 1.0, len(T))
+
+    def scaled(k: float) -> np.ndarray:
+        out = T.copy()
+        out[:, :3, 3] *= k
+        return out
+
+    astray = T.copy()
+    turn = geo.so3_exp(torch.tensor([[0.0, 0.0, math.radians(6.0)]], dtype=torch.float64))[0].numpy()
+    for j, a in enumerate(s):
+        bend = geo.so3_exp(torch.tensor([[0.0, math.radians(15.0) * a, 0.0]], dtype=torch.float64))[0].numpy()
+        astray[j, :3, 3] = np.exp(0.5 * a) * bend @ T[j, :3, 3]
+        astray[j, :3, :3] = turn @ T[j, :3, :3]
+    out = combine_builds([scaled(0.5), astray, scaled(1.3)])
+    assert out.dtype == np.float32 and out.shape == T.shape
+    assert np.allclose(out[:, :3, 3], 1.3 * T[:, :3, 3], atol=1e-5)
+    off = rotation_angle_deg(out[:, :3, :3].astype(np.float64) @ np.transpose(T[:, :3, :3], (0, 2, 1)))
+    expected = math.degrees(math.atan2(math.sin(math.radians(6.0)), 2.0 + math.cos(math.radians(6.0))))
+    assert expected == pytest.approx(2.0, abs=0.01)
+    assert np.allclose(off, expected, atol=0.01)
+    assert np.allclose(combine_builds([scaled(1.3), astray, scaled(0.5)])[:, :3, 3], 0.5 * T[:, :3, 3], atol=1e-5)
+    assert np.allclose(combine_builds([astray]), astray, atol=1e-6)
+    with pytest.raises(ValueError, match="at least one build"):
+        combine_builds([])
+    with pytest.raises(ValueError, match="different shapes"):
+        combine_builds([T, T[:-1]])
+
+
+def test_trainer_combines_the_last_builds_when_asked(synth_shards: Path, tmp_path: Path) -> None:
+    """``anchor_combine`` 3, anchors rebuilt every step: the first two builds are used as built, the
+    third and every one after are combined with the two before (the anchors event says how many);
+    the checkpoint keeps the builds, and a resumed run combines its next build with the last two."""
+    from relocdepth import checkpoint as ckpt_io
+    from relocdepth.anchors import combine_builds
+    from relocdepth.train import train
+
+    run = tmp_path / "run"
+    train(synth_shards, run, _cfg(max_steps=4, anchor_every=1, anchor_combine=3, checkpoint_every=1, keep_last=5))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    assert [(d["step"], d["combined"]) for d in log if d.get("event") == "anchors"] == [(1, 1), (2, 1), (3, 3)]
+    cks = {c["meta"]["step"]: c["anchors"] for c in map(ckpt_io.load_checkpoint, ckpt_io.list_checkpoints(run))}
+    assert len(cks[3]["builds"]) == 2 and torch.equal(cks[3]["T_wc"], cks[3]["builds"][-1])  # built before step 3
+    last = cks[4]
+    assert len(last["builds"]) == 3 and all(torch.equal(a, b) for a, b in zip(last["builds"], cks[3]["builds"]))
+    assert np.array_equal(last["T_wc"].numpy(), combine_builds([b.numpy() for b in last["builds"]]))
+    assert not torch.equal(last["T_wc"], last["builds"][-1])
+    train(synth_shards, run, _cfg(max_steps=5, anchor_every=1, anchor_combine=3, resume=True))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    assert [(d["step"], d["combined"]) for d in log if d.get("event") == "anchors"][-1] == (4, 3)
+    now = ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]
+    assert all(torch.equal(a, b) for a, b in zip(now["builds"][:2], last["builds"][1:]))
+    assert np.array_equal(now["T_wc"].numpy(), combine_builds([b.numpy() for b in now["builds"]]))
 
 
 def test_direction_turn_recovers_a_known_turn_of_the_centres_despite_outliers() -> None:
