@@ -176,9 +176,8 @@ def combine_builds(builds: list[np.ndarray]) -> np.ndarray:
         centres.append(c * (float(np.sum(c * c_new)) / denom if denom > 0 else 1.0))
     out = new.copy()
     out[:, :3, 3] = np.median(np.stack(centres), axis=0)
-    U, _, Vt = np.linalg.svd(np.sum([b[:, :3, :3] for b in T], axis=0))
-    flip = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, 2] *= np.where(flip == 0, 1.0, flip)[:, None]
+    U, _, Vt = np.linalg.svd(np.sum([b[:, :3, :3] for b in T], axis=0))  # per frame the nearest rotation
+    U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]  # (det +-1: a rotation, not a reflection)
     out[:, :3, :3] = U @ Vt
     return out.astype(np.float32)
 
