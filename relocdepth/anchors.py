@@ -162,23 +162,23 @@ def combine_builds(builds: list[np.ndarray]) -> np.ndarray:
     and in its errors, so only the scale is fitted: a similarity fitted over all the centres
     would spread a build's drift along the path over the whole of it. With three builds, one
     that has gone astray is outvoted frame by frame where two agree."""
+    from relocdepth.eval_geometry import chordal_mean_rotation
+
     if not builds:
         raise ValueError("combine_builds needs at least one build")
-    new = np.asarray(builds[-1], np.float64)
     T = [np.asarray(b, np.float64) for b in builds]
-    if any(b.shape != new.shape for b in T):
+    if any(b.shape != T[-1].shape for b in T):
         raise ValueError(f"builds of different shapes: {[b.shape for b in T]}")
-    c_new = new[:, :3, 3]
+    c_new = T[-1][:, :3, 3]
     centres = []
     for b in T:
         c = b[:, :3, 3]
         denom = float(np.sum(c * c))
         centres.append(c * (float(np.sum(c * c_new)) / denom if denom > 0 else 1.0))
-    out = new.copy()
+    out = T[-1].copy()
     out[:, :3, 3] = np.median(np.stack(centres), axis=0)
-    U, _, Vt = np.linalg.svd(np.sum([b[:, :3, :3] for b in T], axis=0))  # per frame the nearest rotation
-    U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]  # (det +-1: a rotation, not a reflection)
-    out[:, :3, :3] = U @ Vt
+    R = np.stack([b[:, :3, :3] for b in T], axis=1)  # (N, builds, 3, 3)
+    out[:, :3, :3] = [chordal_mean_rotation(r) for r in R]
     return out.astype(np.float32)
 
 
