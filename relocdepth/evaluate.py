@@ -77,7 +77,7 @@ class Gathered:
     T_gt: list[np.ndarray] = field(default_factory=list)
     thumbs: list[np.ndarray] = field(default_factory=list)
     confidence: list[float] = field(default_factory=list)
-    depth: list[dict | None] = field(default_factory=list)  # per-frame depth errors
+    depth: list[dict | None] = field(default_factory=list)  # per-frame depth errors (None: no GT depth)
     constant: list[dict | None] = field(default_factory=list)  # constant-depth reference
     strips: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
 
@@ -113,6 +113,7 @@ def pose_report(
         "train": M.pose_summary(*EG.pose_errors(train_al, train_gt)),
         "rotation_only": {"median_r_deg": float(np.median(rot_only)), "mean_r_deg": float(np.mean(rot_only))},
         "relative": M.relative_pose_errors(test_al, test_gt, test_sequences, relative_k),
+        "along_axis": along_axis_summary(along_axis_errors(test_al, test_gt)),
         "spread": {
             "prediction_raw": EG.pose_spread(test_est),
             "prediction_aligned": EG.pose_spread(test_al),
@@ -123,6 +124,35 @@ def pose_report(
         report["rotation_only"]["fit_gap_deg"] = alignment_gap_deg(
             fit.R, train_est[:, :3, :3], train_gt[:, :3, :3])
     return report, fit, test_al
+
+
+def along_axis_errors(T_est: np.ndarray, T_gt: np.ndarray) -> np.ndarray:
+    """Signed error (m) of each estimated centre along its true camera's optical axis:
+    ``(c_est - c_gt) . R_gt e_z``. Positive = the estimate stands in front of the true camera,
+    towards what it sees, as a depth that is too short on that frame puts it (``c = tau - |Q| G e_z``)."""
+    T_est, T_gt = np.asarray(T_est, np.float64), np.asarray(T_gt, np.float64)
+    return np.einsum("ni,ni->n", T_est[:, :3, 3] - T_gt[:, :3, 3], T_gt[:, :3, 2])
+
+
+def along_axis_summary(along: np.ndarray) -> dict:
+    return {"median_m": float(np.median(along)), "mean_m": float(np.mean(along)),
+            "median_abs_m": float(np.median(np.abs(along)))}
+
+
+def depth_pose_ratios(per_frame: list[dict | None], alignment_scale: float) -> np.ndarray:
+    """Per frame, how far the network's depth is from its own poses' units: the frame's median
+    scaling factor (ground truth over prediction, metres per depth unit) over the Sim(3)'s scale
+    (metres per pose unit); NaN where a frame has no depth. 1 = the depth is in the units of the
+    poses; 1.1 = 10 % too short there, which moves the camera's centre forward along its axis."""
+    return np.array([np.nan if f is None else f["scale"] / alignment_scale for f in per_frame], np.float64)
+
+
+def depth_pose_summary(ratios: np.ndarray) -> dict | None:
+    r = ratios[np.isfinite(ratios)]
+    if r.size == 0:
+        return None
+    p10, p50, p90 = np.percentile(r, [10, 50, 90])
+    return {"frames": int(r.size), "median": float(p50), "p10": float(p10), "p90": float(p90)}
 
 
 def alignment_gap_deg(R_sim3: np.ndarray, R_est: np.ndarray, R_gt: np.ndarray) -> float:
@@ -217,6 +247,9 @@ def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: st
                     g.constant.append(M.constant_depth_errors(gt, cfg.depth_range))
                     if start + i in strips:
                         g.strips.append((img, pred.depth[i], gt))
+                elif depth:  # one entry per frame, so that per-frame columns line up
+                    g.depth.append(None)
+                    g.constant.append(None)
             progress.advance(task, len(recs))
     return g
 
@@ -267,6 +300,8 @@ def evaluate(
                              frames=len(train_recs), manifest_hash=ds.manifest_hash, created=created,
                              degenerate=fit.degenerate is not None, degenerate_reason=fit.degenerate)
     depth = M.depth_summary(te.depth)
+    ratios = (depth_pose_ratios(te.depth, fit.scale) if depth is not None and fit.degenerate is None
+              else np.full(len(test_recs), np.nan))
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
     if refine is not None:
@@ -288,7 +323,8 @@ def evaluate(
         "pose": pose,
         "baselines": baselines_report(train_gt, test_gt, np.stack(tr.thumbs), np.stack(te.thumbs)),
         "depth": None if depth is None else {
-            "prediction": depth, "constant_reference": M.depth_summary(te.constant)},
+            "prediction": depth, "constant_reference": M.depth_summary(te.constant),
+            "pose_units": depth_pose_summary(ratios)},
         "confidence_median": float(np.median(te.confidence)),
         "confidence": M.confidence_ranking(np.asarray(te.confidence), t_err, r_err),
         "saved_alignment": bool(save_alignment),
@@ -297,7 +333,8 @@ def evaluate(
     report["outputs"] = _write_outputs(report_path, plots, te, test_al, test_gt, train_gt, pose)
     frames_csv = frames_csv_path(report_path)
     nearest_m = M.nearest_centre_baseline(train_gt, test_gt)[2]
-    write_text_atomic(frames_csv, per_frame_csv(te, t_err, r_err, nearest_m, refined))
+    write_text_atomic(frames_csv, per_frame_csv(te, t_err, r_err, nearest_m, refined,
+                                                along_axis_errors(test_al, test_gt), ratios))
     report["outputs"]["frames_csv"] = str(frames_csv)
     validate("report", report, what="evaluation report")
     write_text_atomic(report_path, _dumps(report))
@@ -311,14 +348,17 @@ def frames_csv_path(report_path: Path) -> Path:
     return report_path.with_name(report_path.stem + ".frames.csv")
 
 
-FRAMES_CSV_HEADER = ("sequence", "frame", "t_err_m", "r_err_deg", "confidence", "nearest_train_m")
+FRAMES_CSV_HEADER = ("sequence", "frame", "t_err_m", "r_err_deg", "confidence", "nearest_train_m",
+                     "along_axis_m", "depth_pose_ratio")
 FRAMES_CSV_REFINED = ("refined_t_err_m", "refined_r_err_deg", "refined_pairs", "refined_by")
 
 
 def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m: np.ndarray,
-                  refined: tuple[np.ndarray, np.ndarray, list[Refined]] | None = None) -> str:
-    """CSV text: one row per test frame (errors after the Sim(3), the frame's confidence, and the
-    distance from its true camera centre to the nearest training frame's); with ``refined``
+                  refined: tuple[np.ndarray, np.ndarray, list[Refined]] | None = None,
+                  along_m: np.ndarray | None = None, depth_ratio: np.ndarray | None = None) -> str:
+    """CSV text: one row per test frame (errors after the Sim(3), the frame's confidence, the
+    distance from its true camera centre to the nearest training frame's, the error along its
+    optical axis and its depth's ratio to the poses' units, empty without depth); with ``refined``
     (t_err, r_err, the refinements: pairs agreeing, what placed it) the refined pose's errors too."""
     import csv
     import io
@@ -326,9 +366,13 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(FRAMES_CSV_HEADER + (FRAMES_CSV_REFINED if refined is not None else ()))
-    rows = zip(te.sequences, te.frames, t_err, r_err, te.confidence, nearest_m, strict=True)
-    for i, (seq, frame, t, r, c, n) in enumerate(rows):
-        row = [seq, frame, f"{t:.6g}", f"{r:.6g}", f"{c:.6g}", f"{n:.6g}"]
+    n_frames = len(te.sequences)
+    along_m = np.full(n_frames, np.nan) if along_m is None else along_m
+    depth_ratio = np.full(n_frames, np.nan) if depth_ratio is None else depth_ratio
+    rows = zip(te.sequences, te.frames, t_err, r_err, te.confidence, nearest_m, along_m, depth_ratio, strict=True)
+    for i, (seq, frame, t, r, c, n, a, d) in enumerate(rows):
+        row = [seq, frame, f"{t:.6g}", f"{r:.6g}", f"{c:.6g}", f"{n:.6g}",
+               "" if not np.isfinite(a) else f"{a:.6g}", "" if not np.isfinite(d) else f"{d:.6g}"]
         if refined is not None:
             row += [f"{refined[0][i]:.6g}", f"{refined[1][i]:.6g}", str(refined[2][i].pairs), refined[2][i].by]
         w.writerow(row)

@@ -73,6 +73,10 @@ def format_table(report: dict) -> str:
             f"{rel['median_t_m']:.3f} m {rel['median_r_deg']:.2f} deg "
             f"(identity: {rel['identity_median_t_m']:.3f} m {rel['identity_median_r_deg']:.2f} deg)"
         )
+    if "along_axis" in pose:  # older reports lack it
+        ax = pose["along_axis"]
+        lines.append(f"test centres along their optical axes: median {ax['median_m']:+.3f} m "
+                     f"(|.| {ax['median_abs_m']:.3f} m; + = in front of the true camera)")
     sp = pose["spread"]
     lines.append(
         f"spread of test poses: centres {sp['prediction_aligned']['centre_rms']:.3f} m aligned "
@@ -99,6 +103,12 @@ def format_table(report: dict) -> str:
             _depth_row("relocdepth", depth["prediction"]),
             _depth_row("constant depth", depth["constant_reference"]),
         ]
+        units = depth.get("pose_units")  # older reports lack it
+        if units:
+            lines.append(
+                f"  depth in the poses' units (scale / Sim(3) scale): median {units['median']:.3f}, "
+                f"10-90 % {units['p10']:.3f}-{units['p90']:.3f} (1 = the same units; above 1 = "
+                "depth too short there, the centre put forward)")
     out = report.get("outputs", {})
     if out:
         lines += ["", f"report: {out.get('report')}"]

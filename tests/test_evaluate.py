@@ -67,6 +67,42 @@ def test_known_sim3_gives_zero_error() -> None:
         report["spread"]["ground_truth"]["centre_rms"] / 3.0)
 
 
+def test_error_along_the_optical_axis() -> None:
+    """Test predictions that are the ground truth moved 7 cm along each true camera's optical axis
+    (and 4 cm across it, which must not count), in another frame and unit: the along-axis error
+    is +0.07 m, -0.07 m when moved back; the exact case gives 0."""
+    train_gt, test_gt = trajectory(30, 0), trajectory(12, 1, offset=(0.1, 0.0, 0.0))
+    to_net = (0.5, R0.T, -0.5 * R0.T @ T0)
+    for step in (0.07, -0.07, 0.0):
+        moved = test_gt.copy()
+        moved[:, :3, 3] += step * test_gt[:, :3, 2] + 0.04 * test_gt[:, :3, 0]
+        report, _, _ = pose_report(sim3(train_gt, *to_net), train_gt, sim3(moved, *to_net), test_gt, ["s"] * 12)
+        ax = report["along_axis"]
+        assert ax["median_m"] == pytest.approx(step, abs=1e-9)
+        assert ax["mean_m"] == pytest.approx(step, abs=1e-9)
+        assert ax["median_abs_m"] == pytest.approx(abs(step), abs=1e-9)
+        assert report["test"]["median_t_m"] == pytest.approx(np.hypot(step, 0.04), abs=1e-9)
+
+
+def test_depth_in_the_poses_units() -> None:
+    """A network whose poses are the ground truth at 1/3 scale (the Sim(3)'s scale is 3) and whose
+    depth is the ground truth's at 1/3.3 on one frame, 1/3 on another: the depth is 10 % short of
+    its poses' units on the first (ratio 1.1) and in them on the second (1.0); a frame without
+    depth is left out; none at all gives no summary."""
+    from relocdepth.evaluate import depth_pose_ratios, depth_pose_summary
+
+    rng = np.random.default_rng(3)
+    gt = rng.uniform(0.5, 4.0, size=(24, 32))
+    frames = [M.depth_errors(gt / 3.3, gt), M.depth_errors(gt / 3.0, gt), None]
+    ratios = depth_pose_ratios(frames, 3.0)
+    np.testing.assert_allclose(ratios[:2], [1.1, 1.0], rtol=1e-9)
+    assert np.isnan(ratios[2])
+    summary = depth_pose_summary(ratios)
+    assert summary["frames"] == 2 and summary["median"] == pytest.approx(1.05)
+    assert summary["p10"] == pytest.approx(1.01) and summary["p90"] == pytest.approx(1.09)
+    assert depth_pose_summary(np.array([np.nan])) is None
+
+
 def test_alignment_gap_when_centres_and_orientations_disagree() -> None:
     """Predictions whose centres are the GT's in one frame and whose orientations are the GT's
     turned a further 7 deg about the vertical: the rotation-only alignment recovers the
@@ -300,7 +336,8 @@ def test_per_frame_csv_confidence_ranking_and_evo_ape(
     assert report["outputs"]["frames_csv"] == str(csv_path)
     with csv_path.open(newline="") as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0]) == ["sequence", "frame", "t_err_m", "r_err_deg", "confidence", "nearest_train_m"]
+    assert list(rows[0]) == ["sequence", "frame", "t_err_m", "r_err_deg", "confidence", "nearest_train_m",
+                             "along_axis_m", "depth_pose_ratio"]
     test = open_dataset(synth_shards).frames("test")
     assert [(r["sequence"], int(r["frame"])) for r in rows] == [(x.sequence, x.frame) for x in test]
     t_csv = np.array([float(r["t_err_m"]) for r in rows])
@@ -327,6 +364,16 @@ def test_per_frame_csv_confidence_ranking_and_evo_ape(
     test_summary = report["pose"]["test"]
     assert np.median(t_csv) == pytest.approx(test_summary["median_t_m"], rel=1e-4)
     assert 100 * np.mean((t_csv <= 0.10) & (r_csv <= 5.0)) == pytest.approx(test_summary["pct_10cm_5deg"])
+    # the error along each true optical axis, from the TUM files; the depth's ratio to the poses' units
+    along = np.array([float(r["along_axis_m"]) for r in rows])
+    np.testing.assert_allclose(along, np.einsum("ni,ni->n", T_est[:, :3, 3] - T_gt[:, :3, 3], T_gt[:, :3, 2]),
+                               rtol=1e-4, atol=1e-5)
+    assert np.all(np.abs(along) <= t_csv * (1 + 1e-4) + 1e-6)
+    assert report["pose"]["along_axis"]["median_m"] == pytest.approx(np.median(along), rel=1e-4, abs=1e-6)
+    ratio = np.array([float(r["depth_pose_ratio"]) for r in rows])
+    assert np.all(ratio > 0)
+    assert report["depth"]["pose_units"]["median"] == pytest.approx(np.median(ratio), rel=1e-4)
+    assert report["depth"]["pose_units"]["frames"] == len(rows)
     ranking = report["confidence"]
     assert ranking["frames"] == len(rows)
     assert ranking["median"] == pytest.approx(np.median(conf), rel=1e-4)
