@@ -147,12 +147,18 @@ def depth_pose_ratios(per_frame: list[dict | None], alignment_scale: float) -> n
     return np.array([np.nan if f is None else f["scale"] / alignment_scale for f in per_frame], np.float64)
 
 
-def depth_pose_summary(ratios: np.ndarray) -> dict | None:
+def depth_pose_summary(ratios: np.ndarray, train_ratios: np.ndarray | None = None) -> dict | None:
+    """Median and 10-90 % of the test frames' ratios, beside the training frames' median (the
+    units the poses were fitted in: a test median away from it is depth that did not carry over
+    to the test views; None when no training frame has depth)."""
     r = ratios[np.isfinite(ratios)]
     if r.size == 0:
         return None
     p10, p50, p90 = np.percentile(r, [10, 50, 90])
-    return {"frames": int(r.size), "median": float(p50), "p10": float(p10), "p90": float(p90)}
+    tr = np.asarray([] if train_ratios is None else train_ratios, np.float64)
+    tr = tr[np.isfinite(tr)]
+    return {"frames": int(r.size), "median": float(p50), "p10": float(p10), "p90": float(p90),
+            "train_median": float(np.median(tr)) if tr.size else None}
 
 
 def alignment_gap_deg(R_sim3: np.ndarray, R_est: np.ndarray, R_gt: np.ndarray) -> float:
@@ -216,8 +222,10 @@ def _strip_indices(records: list, n: int) -> set[int]:
     return {with_depth[i] for i in pick}
 
 
-def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: str) -> Gathered:
-    """Predict ``records`` in batches; collect GT, thumbnails and (optionally) depth errors."""
+def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: str,
+           depth_scales: bool = False) -> Gathered:
+    """Predict ``records`` in batches; collect GT, thumbnails and (optionally) depth errors, or
+    with ``depth_scales`` only each frame's depth scaling factor (NaN without ground-truth depth)."""
     import cv2
 
     from relocdepth.progress import progress_bar
@@ -229,7 +237,7 @@ def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: st
         for start in range(0, len(records), cfg.batch_size):
             recs = records[start:start + cfg.batch_size]
             imgs = [ds.read_image(r) for r in recs]
-            pred = predictor.predict(imgs, [r.intrinsics for r in recs], with_depth=depth)
+            pred = predictor.predict(imgs, [r.intrinsics for r in recs], with_depth=depth or depth_scales)
             for i, (rec, img) in enumerate(zip(recs, imgs)):
                 g.keys.append(rec.key)
                 g.sequences.append(rec.sequence)
@@ -250,6 +258,12 @@ def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: st
                 elif depth:  # one entry per frame, so that per-frame columns line up
                     g.depth.append(None)
                     g.constant.append(None)
+                elif depth_scales:
+                    gt = ds.read_depth(rec) if rec.has_depth else None
+                    err = None if gt is None else M.depth_errors(
+                        cv2.resize(pred.depth[i], (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_LINEAR),
+                        gt, cfg.depth_range)
+                    g.depth.append(err)
             progress.advance(task, len(recs))
     return g
 
@@ -288,7 +302,7 @@ def evaluate(
     if predictor.meta.get("manifest_hash") != ds.manifest_hash:
         log.warning("the checkpoint was trained on other shards than %s", ds.root)
 
-    tr = gather(ds, predictor, train_recs, cfg, depth=False, label="train")
+    tr = gather(ds, predictor, train_recs, cfg, depth=False, label="train", depth_scales=True)
     te = gather(ds, predictor, test_recs, cfg, depth=True, label="test")
     train_est, train_gt = tr.arrays()
     test_est, test_gt = te.arrays()
@@ -300,8 +314,9 @@ def evaluate(
                              frames=len(train_recs), manifest_hash=ds.manifest_hash, created=created,
                              degenerate=fit.degenerate is not None, degenerate_reason=fit.degenerate)
     depth = M.depth_summary(te.depth)
-    ratios = (depth_pose_ratios(te.depth, fit.scale) if depth is not None and fit.degenerate is None
-              else np.full(len(test_recs), np.nan))
+    units = depth is not None and fit.degenerate is None
+    ratios = depth_pose_ratios(te.depth, fit.scale) if units else np.full(len(test_recs), np.nan)
+    train_ratios = depth_pose_ratios(tr.depth, fit.scale) if units else np.full(0, np.nan)
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
     if refine is not None:
@@ -324,7 +339,7 @@ def evaluate(
         "baselines": baselines_report(train_gt, test_gt, np.stack(tr.thumbs), np.stack(te.thumbs)),
         "depth": None if depth is None else {
             "prediction": depth, "constant_reference": M.depth_summary(te.constant),
-            "pose_units": depth_pose_summary(ratios)},
+            "pose_units": depth_pose_summary(ratios, train_ratios)},
         "confidence_median": float(np.median(te.confidence)),
         "confidence": M.confidence_ranking(np.asarray(te.confidence), t_err, r_err),
         "saved_alignment": bool(save_alignment),

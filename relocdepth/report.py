@@ -105,10 +105,12 @@ def format_table(report: dict) -> str:
         ]
         units = depth.get("pose_units")  # older reports lack it
         if units:
+            train = units.get("train_median")
             lines.append(
-                f"  depth in the poses' units (scale / Sim(3) scale): median {units['median']:.3f}, "
-                f"10-90 % {units['p10']:.3f}-{units['p90']:.3f} (1 = the same units; above 1 = "
-                "depth too short there, the centre put forward)")
+                f"  depth in the poses' units (scale / Sim(3) scale): test median {units['median']:.3f}, "
+                f"10-90 % {units['p10']:.3f}-{units['p90']:.3f}"
+                + (f"; training frames {train:.3f} (test above it = depth shorter on the test views, "
+                   "their centres put forward)" if train is not None else ""))
     out = report.get("outputs", {})
     if out:
         lines += ["", f"report: {out.get('report')}"]

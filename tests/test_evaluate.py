@@ -100,6 +100,10 @@ def test_depth_in_the_poses_units() -> None:
     summary = depth_pose_summary(ratios)
     assert summary["frames"] == 2 and summary["median"] == pytest.approx(1.05)
     assert summary["p10"] == pytest.approx(1.01) and summary["p90"] == pytest.approx(1.09)
+    assert summary["train_median"] is None
+    # the training frames' depth in the poses' units (1.0, and a frame without depth): beside it
+    train = depth_pose_ratios([M.depth_errors(gt / 3.0, gt), None, M.depth_errors(gt / 2.7, gt)], 3.0)
+    assert depth_pose_summary(ratios, train)["train_median"] == pytest.approx(0.95)
     assert depth_pose_summary(np.array([np.nan])) is None
 
 
@@ -374,6 +378,8 @@ def test_per_frame_csv_confidence_ranking_and_evo_ape(
     assert np.all(ratio > 0)
     assert report["depth"]["pose_units"]["median"] == pytest.approx(np.median(ratio), rel=1e-4)
     assert report["depth"]["pose_units"]["frames"] == len(rows)
+    assert report["depth"]["pose_units"]["train_median"] > 0  # the synthetic scene's training frames have depth
+    assert "training frames" in res.stdout
     ranking = report["confidence"]
     assert ranking["frames"] == len(rows)
     assert ranking["median"] == pytest.approx(np.median(conf), rel=1e-4)
