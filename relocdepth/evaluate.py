@@ -222,6 +222,9 @@ def _strip_indices(records: list, n: int) -> set[int]:
     return {with_depth[i] for i in pick}
 
 
+SCALE_FRAMES = 300  # training frames whose depth scale is measured (the median of them is reported)
+
+
 def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: str,
            depth_scales: bool = False) -> Gathered:
     """Predict ``records`` in batches; collect GT, thumbnails and (optionally) depth errors, or
@@ -258,8 +261,9 @@ def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: st
                 elif depth:  # one entry per frame, so that per-frame columns line up
                     g.depth.append(None)
                     g.constant.append(None)
-                elif depth_scales:
-                    gt = ds.read_depth(rec) if rec.has_depth else None
+                elif depth_scales:  # at most ~SCALE_FRAMES of them, evenly spread
+                    take = rec.has_depth and (start + i) % max(1, len(records) // SCALE_FRAMES) == 0
+                    gt = ds.read_depth(rec) if take else None
                     err = None if gt is None else M.depth_errors(
                         cv2.resize(pred.depth[i], (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_LINEAR),
                         gt, cfg.depth_range)
