@@ -71,8 +71,17 @@ RECIPES: dict[str, dict[str, Any]] = {
     # its pairs has so few tracks. The bundle adjustment tracks every step again from the track's
     # first view (BAConfig.first_view_px): on the demo scene the anchors went from 0.052-0.056 to
     # 0.012-0.019 m and the network's rotation from 24-26 to 3.7-5.7 deg; on the walk-through rung
-    # 3 at 5 of 7 checkpoints from step 950 instead of 1 (README, Quality: trial 31).
-    "cpu-anchored": {**_CPU, **_BOOTSTRAP, **_ANCHORS},
+    # 3 at 5 of 7 checkpoints from step 950 instead of 1 (README, Quality: trial 31). The bundle's
+    # scale along the path follows a line through the network's per-frame scales
+    # (anchor_bundle_scale_degree 1) and the anchors are the last three builds combined frame by
+    # frame (anchor_combine 3): on the walk-through all four seeds from random init reached rung 3,
+    # at steps 1150-1250, and held it at 36 of 39 checkpoints to step 2000 (README, Quality: trials
+    # 39-40); on the demo scene the anchors (0.013 m) and the network stayed where they were.
+    # No hand-over within a CPU run, as in `cpu-linked`: handed over at step 2000, the walk-through's
+    # depth went from AbsRel 0.127 to 0.23 within 300 steps and its rotation above retrieval's
+    # (trial 40), as the demo scene's had (trials 21-22).
+    "cpu-anchored": {**_CPU, **_BOOTSTRAP, **_ANCHORS, "anchor_bundle_scale_degree": 1, "anchor_combine": 3,
+                     "bootstrap_steps": 100_000},
     # `cpu-bootstrap` + anchors from the DSC network's own poses with the training sequences linked
     # into one world (built once its relative poses are right, step 600, then every 300 steps).
     # No hand-over within a CPU run: the bootstrap's warps and the anchors stay for 100000 steps.
@@ -81,7 +90,9 @@ RECIPES: dict[str, dict[str, Any]] = {
     "cpu-linked": {**_CPU, **_BOOTSTRAP, "anchor": "linked", "anchor_step": 600, "anchor_every": 300,
                    "bootstrap_steps": 100_000},
     # What `reloc demo` trains (its minutes end well inside the bootstrap): `cpu-anchored` with the
-    # first anchors at step 100, so that the DSC network has them for half of the demo's ~240 steps.
+    # first anchors at step 100, so that the DSC network has them for half of the demo's ~240 steps,
+    # and without the scale's line and the combined builds (two builds in its budget; the line was
+    # not measured there).
     # At steps 200 and 240 of the demo scene it was at rung 2 on three seeds (relative pose better
     # than identity's, rotation after a rotation-only fit 4.3-7.0 deg) where `cpu-bootstrap` stayed
     # at rung 0 (9.5-12.2 deg), depth within 0.007 AbsRel (README, Quality: trial 32).
