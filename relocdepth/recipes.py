@@ -75,7 +75,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     # scale along the path follows a line through the network's per-frame scales
     # (anchor_bundle_scale_degree 1) and the anchors are the last three builds combined frame by
     # frame (anchor_combine 3): on the walk-through all four seeds from random init reached rung 3,
-    # at steps 1150-1250, and held it at 36 of 39 checkpoints to step 2000 (README, Quality: trials
+    # at steps 1150-1250, and held it at 35 of 39 checkpoints to step 2050 (README, Quality: trials
     # 39-40); on the demo scene the anchors (0.013 m) and the network stayed where they were.
     # No hand-over within a CPU run, as in `cpu-linked`: handed over at step 2000, the walk-through's
     # depth went from AbsRel 0.127 to 0.23 within 300 steps and its rotation above retrieval's
