@@ -222,15 +222,22 @@ def _strip_indices(records: list, n: int) -> set[int]:
     return {with_depth[i] for i in pick}
 
 
+def _depth_errors(pred: np.ndarray, gt: np.ndarray, cfg: EvalConfig) -> dict | None:
+    """One frame's depth errors: the prediction resized to the ground truth's map."""
+    import cv2
+
+    d = cv2.resize(pred, (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_LINEAR)
+    return M.depth_errors(d, gt, cfg.depth_range)
+
+
 SCALE_FRAMES = 300  # training frames whose depth scale is measured (the median of them is reported)
 
 
 def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: str,
            depth_scales: bool = False) -> Gathered:
     """Predict ``records`` in batches; collect GT, thumbnails and (optionally) depth errors, or
-    with ``depth_scales`` only each frame's depth scaling factor (NaN without ground-truth depth)."""
-    import cv2
-
+    with ``depth_scales`` the depth errors of up to ``SCALE_FRAMES`` of them, for their scaling factor
+    (None for the others and where there is no ground-truth depth)."""
     from relocdepth.progress import progress_bar
 
     g = Gathered()
@@ -252,9 +259,7 @@ def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: st
                 g.confidence.append(float(pred.confidence[i]))
                 if depth and rec.has_depth:
                     gt = ds.read_depth(rec)
-                    d = cv2.resize(pred.depth[i], (gt.shape[1], gt.shape[0]),
-                                   interpolation=cv2.INTER_LINEAR)
-                    g.depth.append(M.depth_errors(d, gt, cfg.depth_range))
+                    g.depth.append(_depth_errors(pred.depth[i], gt, cfg))
                     g.constant.append(M.constant_depth_errors(gt, cfg.depth_range))
                     if start + i in strips:
                         g.strips.append((img, pred.depth[i], gt))
@@ -263,11 +268,7 @@ def gather(ds, predictor, records: list, cfg: EvalConfig, depth: bool, label: st
                     g.constant.append(None)
                 elif depth_scales:  # at most ~SCALE_FRAMES of them, evenly spread
                     take = rec.has_depth and (start + i) % max(1, len(records) // SCALE_FRAMES) == 0
-                    gt = ds.read_depth(rec) if take else None
-                    err = None if gt is None else M.depth_errors(
-                        cv2.resize(pred.depth[i], (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_LINEAR),
-                        gt, cfg.depth_range)
-                    g.depth.append(err)
+                    g.depth.append(_depth_errors(pred.depth[i], ds.read_depth(rec), cfg) if take else None)
             progress.advance(task, len(recs))
     return g
 
@@ -320,7 +321,7 @@ def evaluate(
     depth = M.depth_summary(te.depth)
     units = depth is not None and fit.degenerate is None
     ratios = depth_pose_ratios(te.depth, fit.scale) if units else np.full(len(test_recs), np.nan)
-    train_ratios = depth_pose_ratios(tr.depth, fit.scale) if units else np.full(0, np.nan)
+    train_ratios = depth_pose_ratios(tr.depth, fit.scale) if units else None
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
     if refine is not None:
@@ -352,8 +353,8 @@ def evaluate(
     report["outputs"] = _write_outputs(report_path, plots, te, test_al, test_gt, train_gt, pose)
     frames_csv = frames_csv_path(report_path)
     nearest_m = M.nearest_centre_baseline(train_gt, test_gt)[2]
-    write_text_atomic(frames_csv, per_frame_csv(te, t_err, r_err, nearest_m, refined,
-                                                along_axis_errors(test_al, test_gt), ratios))
+    write_text_atomic(frames_csv, per_frame_csv(te, t_err, r_err, nearest_m,
+                                                along_axis_errors(test_al, test_gt), ratios, refined))
     report["outputs"]["frames_csv"] = str(frames_csv)
     validate("report", report, what="evaluation report")
     write_text_atomic(report_path, _dumps(report))
@@ -373,8 +374,8 @@ FRAMES_CSV_REFINED = ("refined_t_err_m", "refined_r_err_deg", "refined_pairs", "
 
 
 def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m: np.ndarray,
-                  refined: tuple[np.ndarray, np.ndarray, list[Refined]] | None = None,
-                  along_m: np.ndarray | None = None, depth_ratio: np.ndarray | None = None) -> str:
+                  along_m: np.ndarray, depth_ratio: np.ndarray,
+                  refined: tuple[np.ndarray, np.ndarray, list[Refined]] | None = None) -> str:
     """CSV text: one row per test frame (errors after the Sim(3), the frame's confidence, the
     distance from its true camera centre to the nearest training frame's, the error along its
     optical axis and its depth's ratio to the poses' units, empty without depth); with ``refined``
@@ -385,9 +386,6 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(FRAMES_CSV_HEADER + (FRAMES_CSV_REFINED if refined is not None else ()))
-    n_frames = len(te.sequences)
-    along_m = np.full(n_frames, np.nan) if along_m is None else along_m
-    depth_ratio = np.full(n_frames, np.nan) if depth_ratio is None else depth_ratio
     rows = zip(te.sequences, te.frames, t_err, r_err, te.confidence, nearest_m, along_m, depth_ratio, strict=True)
     for i, (seq, frame, t, r, c, n, a, d) in enumerate(rows):
         row = [seq, frame, f"{t:.6g}", f"{r:.6g}", f"{c:.6g}", f"{n:.6g}",
