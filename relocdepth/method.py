@@ -32,7 +32,7 @@ CONF_ROT_DEG = 5.0
 CONF_TRANS_REL = 0.05
 
 __all__ = ["LOSS_RESOLUTIONS", "PAIRS_LCVS", "PAIRS_MIDDLE", "PHOTOMETRIC_PIXELS", "Bootstrap", "MethodConfig",
-           "bootstrap_poses", "pairs_for", "predict", "preview", "triplet_loss", "two_view_poses"]
+           "bootstrap_poses", "novel_view_loss", "pairs_for", "predict", "preview", "triplet_loss", "two_view_poses"]
 
 # The pixel sets L_p can average over (MethodConfig.photometric_pixels).
 PHOTOMETRIC_PIXELS = ("valid", "all")
@@ -68,6 +68,14 @@ class MethodConfig:
     # layer": images area-downsampled and K scaled to the scale's own size; the default: it learned
     # as well as "input" at equal steps in the measured rows and its steps take 0.64-0.69x the time).
     loss_resolution: str = "decoder"
+    # Weight of L_nv (not the paper's): each triplet's middle frame seen from a camera moved back
+    # along its optical axis by up to ``novel_view_back`` times its median depth, synthesised from its
+    # image and the network's depth (:func:`relocdepth.geometry.moved_view`); the depth network is
+    # held to that view's depth and the DSC network's pose of it to the frame's own pose moved back
+    # (both detached): views farther from the scene than any training frame, which the networks
+    # otherwise place at the training frames' distances. 0: off.
+    w_novel_view: float = 0.0
+    novel_view_back: float = 0.2
     min_depth: float = 0.1
     max_depth: float = 100.0
 
@@ -78,6 +86,10 @@ class MethodConfig:
             raise ValueError(f"loss_resolution must be one of {LOSS_RESOLUTIONS}, not {self.loss_resolution!r}")
         if not self.w_depth_consistency >= 0:
             raise ValueError(f"w_depth_consistency must be >= 0, not {self.w_depth_consistency}")
+        if not self.w_novel_view >= 0:
+            raise ValueError(f"w_novel_view must be >= 0, not {self.w_novel_view}")
+        if not 0 < self.novel_view_back <= 1:
+            raise ValueError(f"novel_view_back must be in (0, 1], not {self.novel_view_back}")
 
 
 @dataclass(frozen=True)
@@ -253,8 +265,81 @@ def triplet_loss(
         with torch.set_grad_enabled(torch.is_grad_enabled() and boot.warps):
             T_boot = bootstrap_poses(nets, inputs, None if boot.T_wc is None else boot.T_wc.to(dt)).to(dt)
     with torch.autocast(images.device.type, enabled=False):
-        return _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot,
-                                  None if depth_override is None else depth_override.to(dt))
+        total, parts, diag = _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot,
+                                                None if depth_override is None else depth_override.to(dt))
+    if cfg.w_novel_view > 0 and cfg.use_dsc:
+        parts_nv, diag_nv = novel_view_loss(nets, inputs[:, 1], disps[0].reshape(B, 3, 1, H, W)[:, 1].detach(),
+                                            pose_out.reshape(B, 3, *pose_out.shape[1:])[:, 1].detach(),
+                                            K[:, 1].to(dt), cfg)
+        total = total + cfg.w_novel_view * (parts_nv["L_nv_depth"] + parts_nv["L_nv_pose"])
+        parts.update(parts_nv)
+        diag.update(diag_nv)
+    return total, parts, diag
+
+
+def novel_view_loss(
+    nets: Networks, inputs: Tensor, disp: Tensor, dsc: Tensor, K: Tensor, cfg: MethodConfig,
+    back: Tensor | None = None,
+) -> tuple[dict[str, Tensor], dict[str, float]]:
+    """``L_nv`` (see ``MethodConfig.w_novel_view``) of frames ``inputs (B, 3, H, W)`` (the network
+    inputs), from their disparity ``disp (B, 1, H, W)`` (sigmoid, scale 0) and DSC output ``dsc``.
+
+    Each frame is seen from ``back (B,)`` (default: uniform in [0, ``cfg.novel_view_back``]) times
+    its median depth behind it. The new view's pixels outside a central window, the part that a
+    view moved back by the most it can be sees of the frame, are grey, so that the border's width
+    says nothing of how far back it is; those that the frame does not show (valid = False) count
+    in neither term.
+
+    Returns ``parts``: ``L_nv_depth`` (mean |log| ratio of the depth network's depth on the new view
+    to its depth there, over valid pixels) and ``L_nv_pose`` (mean over cells of
+    :func:`relative_pose_consistency` of the DSC's cell poses of the new view, on that depth, with
+    the frame's pose moved back; translations relative to the median depth); ``diagnostics``:
+    ``nv_depth_ratio`` (median of that depth ratio: under 1, the network places the new view's
+    scene too near), ``nv_back`` (mean move over the median depth), ``nv_trans`` (mean centre error
+    of the new views' poses over the median depth), ``nv_valid`` (valid fraction).
+    """
+    B, _, H, W = inputs.shape
+    dt = _geometry_dtype(inputs)
+    with torch.no_grad(), torch.autocast(inputs.device.type, enabled=False):
+        depth = disp_to_depth(disp.to(dt), cfg.min_depth, cfg.max_depth)
+        T_src = _absolute_poses(dsc.to(dt), depth, K, True, "mean")[0]
+        med = depth.reshape(B, -1).median(dim=1).values
+        if back is None:
+            back = torch.rand(B, dtype=dt, device=inputs.device) * cfg.novel_view_back
+        t = torch.zeros(B, 3, dtype=dt, device=inputs.device)
+        t[:, 2] = -back.to(dt) * med
+        image, z, valid = geo.moved_view(inputs.to(dt), depth, t, K)
+        keep = 1.0 / (1.0 + cfg.novel_view_back)  # the window's half-size over the image's
+        u = torch.arange(W, dtype=dt, device=inputs.device) - (W - 1) / 2
+        v = torch.arange(H, dtype=dt, device=inputs.device) - (H - 1) / 2
+        window = (u.abs()[None, :] <= keep * W / 2) & (v.abs()[:, None] <= keep * H / 2)
+        image = torch.where(window, image, torch.full_like(image, 0.5))
+        valid = valid & window
+        # each cell's depth from its valid pixels (every cell keeps some: the window is central)
+        m = valid.to(dt)
+        z_cells = geo.pool_depth(z * m) / geo.pool_depth(m).clamp(min=1e-6)
+        shift = torch.eye(4, dtype=dt, device=inputs.device).repeat(B, 1, 1)
+        shift[:, :3, 3] = t
+        T_new = T_src @ shift
+    x = image.to(inputs.dtype)
+    depth_new = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
+    dsc_new = nets.dsc(x).to(dt)
+    with torch.autocast(inputs.device.type, enabled=False):
+        log_ratio = torch.log(depth_new) - torch.log(z)
+        n_valid = m.sum().clamp(min=1)
+        l_depth = (log_ratio.abs() * m).sum() / n_valid
+        q_cells, c_cells = geo.cell_poses(dsc_new, z_cells, K)
+        n = q_cells.shape[1]
+        T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3))
+        T_ref = T_new[:, None].expand(B, n, 4, 4).reshape(-1, 4, 4)
+        w_t = (1.0 / med)[:, None].expand(B, n).reshape(-1)
+        l_pose = relative_pose_consistency(T_cells, T_ref, w_t).mean()
+        with torch.no_grad():
+            ratio = torch.exp(log_ratio.detach()[valid]).median() if bool(valid.any()) else log_ratio.new_ones(())
+            c_err = (c_cells.detach().mean(dim=1) - T_new[:, :3, 3]).norm(dim=-1) / med
+            diag = {"nv_depth_ratio": float(ratio), "nv_back": float(back.mean()),
+                    "nv_trans": float(c_err.mean()), "nv_valid": float(m.mean())}
+    return {"L_nv_depth": l_depth, "L_nv_pose": l_pose}, diag
 
 
 def _triplet_loss_fp32(

@@ -45,7 +45,7 @@ from relocdepth.geometry.rotations import (
     so3_exp,
     so3_log,
 )
-from relocdepth.geometry.warp import MIN_WARP_DEPTH, depth_disagreement, relative_pose, warp
+from relocdepth.geometry.warp import MIN_WARP_DEPTH, depth_disagreement, moved_view, relative_pose, warp
 
 __all__ = [
     "DSC_STRIDE",
@@ -75,6 +75,7 @@ __all__ = [
     "quat_log",
     "quat_mul",
     "quat_to_matrix",
+    "moved_view",
     "relative_pose",
     "scale_intrinsics",
     "so3_exp",

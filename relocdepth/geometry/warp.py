@@ -90,3 +90,44 @@ def _project(depth_t: Tensor, T_t2s: Tensor, K_t: Tensor, K_s: Tensor) -> tuple[
     valid = (inside & in_front.reshape(B, H, W)).unsqueeze(1)
     # kornia maps pixel indices to [-1, 1] with pixel centres at +-1 (align_corners=True).
     return normalize_pixel_coordinates(uv, H, W), z.reshape(B, 1, H, W), valid
+
+
+def moved_view(
+    image: Tensor, depth: Tensor, t: Tensor, K: Tensor, iters: int = 5, tol: float = 0.01
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The view of a camera moved by ``t`` (its centre in the source camera's frame, the orientation
+    unchanged), synthesised from the source image and depth: a new view of the same scene.
+
+    Each new pixel ``p'`` looks along ``t + z' K^-1 p'``; its depth ``z'`` is found by fixed-point
+    iteration, ``z' = D(p) - t_z`` at the source pixel ``p`` it projects to (from ``z' = D(p') - t_z``).
+    A camera moved back (``t_z < 0``) sees the source's content within a narrower part of its
+    image, and points seen only by the new camera (beyond the source image's edge, behind an
+    occluding edge) have no value: where the source pixel falls outside the image or the iteration
+    has not settled (depth steps), the pixel is not valid.
+
+    Args:
+        image: ``(B, C, H, W)`` source image.
+        depth: ``(B, 1, H, W)`` source depth (z along the optical axis).
+        t: ``(B, 3)`` the new camera's centre in the source camera's frame (same units as depth).
+        K: ``(B, 3, 3)`` intrinsics of both cameras.
+        iters: fixed-point iterations.
+        tol: relative change of ``z'`` in the last iteration under which a pixel counts as settled.
+
+    Returns:
+        ``image' (B, C, H, W)`` (bilinear, border padding), ``depth' (B, 1, H, W)`` (z in the new
+        camera) and ``valid (B, 1, H, W)`` (bool).
+    """
+    B, _, H, W = depth.shape
+    T = torch.eye(4, dtype=depth.dtype, device=depth.device).repeat(B, 1, 1)
+    T[:, :3, 3] = t  # new camera -> source camera: a point X' in the new camera is X' + t
+    t_z = t[:, 2].reshape(B, 1, 1, 1)
+    z = (depth - t_z).clamp(min=MIN_WARP_DEPTH)
+    prev = z
+    for _ in range(iters):
+        grid, _, inside = _project(z, T, K, K)
+        d_src = F.grid_sample(depth, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        prev, z = z, (d_src - t_z).clamp(min=MIN_WARP_DEPTH)
+    grid, _, inside = _project(z, T, K, K)
+    settled = (z - prev).abs() <= tol * z
+    warped = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return warped, z, inside & settled

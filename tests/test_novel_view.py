@@ -1,0 +1,162 @@
+"""The moved view (a frame seen from a camera moved back or aside, synthesised from its image and
+depth) against the renderer, and L_nv against known geometry."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from relocdepth import geometry as geo
+from relocdepth.method import MethodConfig, novel_view_loss, triplet_loss
+from relocdepth.models import ModelConfig, build_networks
+
+torch.set_num_threads(1)
+H, W = 64, 96
+
+
+def _K(B: int = 1) -> torch.Tensor:
+    K = torch.tensor([[80.0, 0, (W - 1) / 2], [0, 80.0, (H - 1) / 2], [0, 0, 1]])
+    return K.expand(B, 3, 3).clone()
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    from relocdepth.camera import Intrinsics
+    from relocdepth.synth import SynthConfig, build_scene, camera_paths
+
+    intr = Intrinsics(fx=80.0, fy=80.0, cx=(W - 1) / 2, cy=(H - 1) / 2, width=W, height=H)
+    return {"scene": build_scene(0, SynthConfig(width=W, height=H)), "intr": intr,
+            "poses": camera_paths(SynthConfig(frames=120))["seq-01"][::40]}
+
+
+def _image(rgb: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(rgb).permute(2, 0, 1)[None].float()
+
+
+@pytest.mark.parametrize("move", [(0.0, 0.0, -0.2), (0.1, -0.05, -0.1), (0.0, 0.0, 0.1)])
+def test_moved_view_is_the_rendered_view(scene: dict, move: tuple) -> None:
+    """A frame moved back, aside or forward by a fraction of its median depth, synthesised from its
+    rendered image and depth, is what the renderer draws from the moved camera: colours within a few
+    grey levels (as the exactness check of the renderer's warps; moved forward, the frame's pixels
+    are magnified), depth exact, over most of the image; the unmoved frame is far from it there."""
+    from relocdepth.synth import render
+
+    for T in scene["poses"]:
+        rgb, depth = render(scene["scene"], T, scene["intr"])
+        t = np.asarray(move) * float(np.median(depth))
+        T2 = T.copy()
+        T2[:3, 3] = T[:3, :3] @ t + T[:3, 3]
+        rgb2, depth2 = render(scene["scene"], T2, scene["intr"])
+        image, z, valid = geo.moved_view(_image(rgb), torch.from_numpy(depth)[None, None],
+                                         torch.tensor(t, dtype=torch.float32)[None], _K())
+        v = valid[0, 0].numpy()
+        assert v.mean() > 0.55  # moved back 20 %: ~0.65 (the rest beyond the frame's edges)
+        diff = np.abs(image[0].permute(1, 2, 0).numpy() - rgb2).mean(-1)[v]
+        unmoved = np.abs(rgb.astype(np.float64) - rgb2).mean(-1)[v]
+        assert np.median(diff) < 3 and np.median(unmoved) > 5 * np.median(diff), (np.median(diff), np.median(unmoved))
+        rel = np.abs(z[0, 0].numpy() / depth2 - 1)[v]
+        assert np.median(rel) < 1e-3 and np.percentile(rel, 90) < 0.02
+
+
+def test_moved_view_unmoved_is_the_frame() -> None:
+    gen = torch.Generator().manual_seed(0)
+    image = torch.rand(2, 3, H, W, generator=gen)
+    depth = 1.0 + torch.rand(2, 1, H, W, generator=gen)
+    out, z, valid = geo.moved_view(image, depth, torch.zeros(2, 3), _K(2))
+    assert torch.allclose(out, image, atol=1e-4) and torch.allclose(z, depth, atol=1e-4) and bool(valid.all())
+
+
+def _disp_of(depth: torch.Tensor, cfg: MethodConfig) -> torch.Tensor:
+    """The sigmoid output that ``disp_to_depth`` turns into ``depth``."""
+    b = 1.0 / cfg.max_depth
+    return (1.0 / depth - b) / (1.0 / cfg.min_depth - b)
+
+
+def _plane_case(back: float, d: float = 2.0) -> dict:
+    """A frame looking at a wall d away, its pose, and the networks' outputs for it."""
+    cfg = MethodConfig(w_novel_view=1.0, novel_view_back=0.25)
+    K = _K()
+    T = torch.eye(4)[None]
+    T[0, :3, :3] = geo.so3_exp(torch.tensor([0.1, -0.4, 0.05]))
+    T[0, :3, 3] = torch.tensor([0.3, -0.2, 1.0])
+    depth = torch.full((1, 1, H, W), d)
+    cells = geo.pool_depth(depth)
+    T_back = T.clone()
+    T_back[0, :3, 3] = T[0, :3, 3] - back * d * T[0, :3, 2]  # moved back along its optical axis
+    return {"cfg": cfg, "K": K, "disp": _disp_of(depth, cfg), "dsc": geo.dsc_from_pose(T, cells, K),
+            "T": T, "T_back": T_back, "cells": cells, "d": d}
+
+
+def _nets(depth_out: torch.Tensor, dsc_out: torch.Tensor) -> SimpleNamespace:
+    return SimpleNamespace(depth=lambda x: [depth_out], dsc=lambda x: dsc_out)
+
+
+def test_novel_view_loss_is_zero_for_networks_that_see_the_move() -> None:
+    """A wall 2 m away, seen from 0.4 m further back: networks that place the new view there (depth
+    2.4, pose moved back) give L_nv = 0; networks that keep to the frame's distance (depth 2.0, the
+    frame's pose: what the networks do on views farther than their training frames) give the log
+    ratio and the move over the depth."""
+    back = 0.2
+    c = _plane_case(back)
+    cfg, d = c["cfg"], c["d"]
+    inputs = torch.rand(1, 3, H, W)
+    right = _nets(_disp_of(torch.full((1, 1, H, W), d * (1 + back)), cfg),
+                  geo.dsc_from_pose(c["T_back"], c["cells"] * (1 + back), c["K"]))
+    parts, diag = novel_view_loss(right, inputs, c["disp"], c["dsc"], c["K"], cfg, back=torch.tensor([back]))
+    assert float(parts["L_nv_depth"]) < 1e-4 and float(parts["L_nv_pose"]) < 1e-4
+    assert abs(diag["nv_depth_ratio"] - 1) < 1e-4 and diag["nv_trans"] < 1e-4
+    assert abs(diag["nv_back"] - back) < 1e-6 and 0.5 < diag["nv_valid"] < 1
+    # every cell placing the new view where the frame was
+    stay = _nets(c["disp"], geo.dsc_from_pose(c["T"], c["cells"] * (1 + back), c["K"]))
+    parts, diag = novel_view_loss(stay, inputs, c["disp"], c["dsc"], c["K"], cfg, back=torch.tensor([back]))
+    assert float(parts["L_nv_depth"]) == pytest.approx(math.log(1 + back), rel=1e-3)
+    assert diag["nv_depth_ratio"] == pytest.approx(1 / (1 + back), rel=1e-3)
+    # the centres 0.4 m off, over the frame's 2 m; the rotations right
+    assert diag["nv_trans"] == pytest.approx(back, rel=1e-3)
+    assert float(parts["L_nv_pose"]) == pytest.approx(back, rel=1e-3)
+
+
+def test_novel_view_window_hides_how_far_back() -> None:
+    """The new view's pixels outside the central window are grey whatever the move, so the border
+    says nothing of it; inside, the frame's content."""
+    c = _plane_case(0.1)
+    seen = []
+    net = SimpleNamespace(depth=lambda x: (seen.append(x.clone()), [c["disp"]])[1], dsc=lambda x: c["dsc"])
+    inputs = torch.rand(1, 3, H, W)
+    for back in (0.0, 0.05, 0.25):
+        novel_view_loss(net, inputs, c["disp"], c["dsc"], c["K"], c["cfg"], back=torch.tensor([back]))
+    keep = 1 / (1 + c["cfg"].novel_view_back)
+    u = (torch.arange(W) - (W - 1) / 2).abs() <= keep * W / 2
+    v = (torch.arange(H) - (H - 1) / 2).abs() <= keep * H / 2
+    window = v[:, None] & u[None, :]
+    for x in seen:
+        assert bool((x[0][:, ~window] == 0.5).all()) and not bool((x[0][:, window] == 0.5).all())
+    assert torch.allclose(seen[0][0][:, window], inputs[0][:, window], atol=1e-4)  # unmoved: the frame
+
+
+def test_novel_view_weight_is_wired() -> None:
+    """With its weight set L_nv's two terms are in the parts and the total, their gradient reaches
+    both networks; without it nothing is computed."""
+    torch.manual_seed(0)
+    nets = build_networks(ModelConfig())
+    gen = torch.Generator().manual_seed(3)
+    imgs = torch.rand(2, 3, 3, H, W, generator=gen)
+    K = _K(2)[:, None].expand(2, 3, 3, 3).clone()
+    _, parts0, diag0 = triplet_loss(nets, imgs, imgs, K, MethodConfig())
+    assert "L_nv_depth" not in parts0 and "nv_depth_ratio" not in diag0
+    torch.manual_seed(1)
+    total, parts, diag = triplet_loss(nets, imgs, imgs, K, MethodConfig(w_novel_view=0.5))
+    assert {"L_nv_depth", "L_nv_pose"} <= set(parts) and 0 <= diag["nv_back"] <= 0.2
+    rest = parts["L_p"] + 0.001 * parts["L_s"] + 0.03 * parts["L_c"]
+    assert torch.allclose(total, rest + 0.5 * (parts["L_nv_depth"] + parts["L_nv_pose"]), atol=1e-6)
+    nets.zero_grad()
+    (parts["L_nv_depth"] + parts["L_nv_pose"]).backward()
+    for net in (nets.depth, nets.dsc):
+        assert sum(float(p.grad.abs().sum()) for p in net.parameters() if p.grad is not None) > 0
+    for bad in ({"w_novel_view": -1.0}, {"novel_view_back": 0.0}, {"novel_view_back": 1.5}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            MethodConfig(**bad)
