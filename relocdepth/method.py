@@ -268,7 +268,7 @@ def triplet_loss(
         total, parts, diag = _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot,
                                                 None if depth_override is None else depth_override.to(dt))
     if cfg.w_novel_view > 0 and cfg.use_dsc:
-        parts_nv, diag_nv = novel_view_loss(nets, inputs[:, 1], disps[0].reshape(B, 3, 1, H, W)[:, 1].detach(),
+        parts_nv, diag_nv = novel_view_loss(nets, inputs[:, 1], disps[0].reshape(B, 3, 1, H, W)[:, 1],
                                             pose_out.reshape(B, 3, *pose_out.shape[1:])[:, 1].detach(),
                                             K[:, 1].to(dt), cfg)
         total = total + cfg.w_novel_view * (parts_nv["L_nv_depth"] + parts_nv["L_nv_pose"])
@@ -282,7 +282,8 @@ def novel_view_loss(
     back: Tensor | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, float]]:
     """``L_nv`` (see ``MethodConfig.w_novel_view``) of frames ``inputs (B, 3, H, W)`` (the network
-    inputs), from their disparity ``disp (B, 1, H, W)`` (sigmoid, scale 0) and DSC output ``dsc``.
+    inputs), from their disparity ``disp (B, 1, H, W)`` (sigmoid, scale 0; L_nv_depth's gradient
+    reaches it) and DSC output ``dsc`` (detached).
 
     Each frame is seen from ``back (B,)`` (default: uniform in [0, ``cfg.novel_view_back``]) times
     its median depth behind it. The new view's pixels outside a central window, the part that a
@@ -290,8 +291,11 @@ def novel_view_loss(
     says nothing of how far back it is; those that the frame does not show (valid = False) count
     in neither term.
 
-    Returns ``parts``: ``L_nv_depth`` (mean |log| ratio of the depth network's depth on the new view
-    to its depth there, over valid pixels) and ``L_nv_pose`` (mean over cells of
+    Returns ``parts``: ``L_nv_depth`` (mean over valid pixels of |log| of the depth network's
+    depth on the new view over its depth there, that is the frame's depth carried into the new view:
+    ``D_new(p') / (D(p) (z(p') / D(p)))``, ``p`` the frame's pixel that ``p'`` shows, the ratio
+    ``z / D`` the move's, detached; so it is unchanged by a scale of all depths, which it cannot
+    push: the frame's depth has its gradient too) and ``L_nv_pose`` (mean over cells of
     :func:`relative_pose_consistency` of the DSC's cell poses of the new view, on that depth, with
     the frame's pose moved back; translations relative to the median depth); ``diagnostics``:
     ``nv_depth_ratio`` (median of that depth ratio: under 1, the network places the new view's
@@ -300,15 +304,19 @@ def novel_view_loss(
     """
     B, _, H, W = inputs.shape
     dt = _geometry_dtype(inputs)
+    with torch.autocast(inputs.device.type, enabled=False):
+        depth_grad = disp_to_depth(disp.to(dt), cfg.min_depth, cfg.max_depth)
     with torch.no_grad(), torch.autocast(inputs.device.type, enabled=False):
-        depth = disp_to_depth(disp.to(dt), cfg.min_depth, cfg.max_depth)
-        T_src = _absolute_poses(dsc.to(dt), depth, K, True, "mean")[0]
+        depth = depth_grad.detach()
+        T_src = _absolute_poses(dsc.detach().to(dt), depth, K, True, "mean")[0]
         med = depth.reshape(B, -1).median(dim=1).values
         if back is None:
             back = torch.rand(B, dtype=dt, device=inputs.device) * cfg.novel_view_back
         t = torch.zeros(B, 3, dtype=dt, device=inputs.device)
         t[:, 2] = -back.to(dt) * med
-        image, z, valid = geo.moved_view(inputs.to(dt), depth, t, K)
+        image, z, valid, grid = geo.moved_view(inputs.to(dt), depth, t, K)
+        # the move's ratio at each new pixel: its depth over the frame's at the pixel it shows
+        move_ratio = z / F.grid_sample(depth, grid, mode="bilinear", padding_mode="border", align_corners=True)
         keep = 1.0 / (1.0 + cfg.novel_view_back)  # the window's half-size over the image's
         u = torch.arange(W, dtype=dt, device=inputs.device) - (W - 1) / 2
         v = torch.arange(H, dtype=dt, device=inputs.device) - (H - 1) / 2
@@ -325,7 +333,8 @@ def novel_view_loss(
     depth_new = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
     dsc_new = nets.dsc(x).to(dt)
     with torch.autocast(inputs.device.type, enabled=False):
-        log_ratio = torch.log(depth_new) - torch.log(z)
+        carried = F.grid_sample(depth_grad, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        log_ratio = torch.log(depth_new) - torch.log(carried * move_ratio)
         n_valid = m.sum().clamp(min=1)
         l_depth = (log_ratio.abs() * m).sum() / n_valid
         q_cells, c_cells = geo.cell_poses(dsc_new, z_cells, K)

@@ -51,7 +51,7 @@ def test_moved_view_is_the_rendered_view(scene: dict, move: tuple) -> None:
         T2 = T.copy()
         T2[:3, 3] = T[:3, :3] @ t + T[:3, 3]
         rgb2, depth2 = render(scene["scene"], T2, scene["intr"])
-        image, z, valid = geo.moved_view(_image(rgb), torch.from_numpy(depth)[None, None],
+        image, z, valid, _ = geo.moved_view(_image(rgb), torch.from_numpy(depth)[None, None],
                                          torch.tensor(t, dtype=torch.float32)[None], _K())
         v = valid[0, 0].numpy()
         assert v.mean() > 0.55  # moved back 20 %: ~0.65 (the rest beyond the frame's edges)
@@ -66,7 +66,7 @@ def test_moved_view_unmoved_is_the_frame() -> None:
     gen = torch.Generator().manual_seed(0)
     image = torch.rand(2, 3, H, W, generator=gen)
     depth = 1.0 + torch.rand(2, 1, H, W, generator=gen)
-    out, z, valid = geo.moved_view(image, depth, torch.zeros(2, 3), _K(2))
+    out, z, valid, _ = geo.moved_view(image, depth, torch.zeros(2, 3), _K(2))
     assert torch.allclose(out, image, atol=1e-4) and torch.allclose(z, depth, atol=1e-4) and bool(valid.all())
 
 
@@ -118,6 +118,15 @@ def test_novel_view_loss_is_zero_for_networks_that_see_the_move() -> None:
     # the centres 0.4 m off, over the frame's 2 m; the rotations right
     assert diag["nv_trans"] == pytest.approx(back, rel=1e-3)
     assert float(parts["L_nv_pose"]) == pytest.approx(back, rel=1e-3)
+    # a scale of all depths changes nothing (so the term cannot push one), and its gradient reaches
+    # the frame's depth as well as the new view's
+    disp3 = _disp_of(torch.full((1, 1, H, W), 3 * d), cfg).requires_grad_()
+    stay3 = _nets(disp3, geo.dsc_from_pose(c["T"], c["cells"] * (1 + back), c["K"]))
+    src3 = _disp_of(torch.full((1, 1, H, W), 3 * d), cfg).requires_grad_()
+    parts3, _ = novel_view_loss(stay3, inputs, src3, c["dsc"], c["K"], cfg, back=torch.tensor([back]))
+    assert float(parts3["L_nv_depth"].detach()) == pytest.approx(math.log(1 + back), rel=1e-3)
+    parts3["L_nv_depth"].backward()
+    assert float(src3.grad.abs().sum()) > 0 and float(disp3.grad.abs().sum()) > 0
 
 
 def test_novel_view_window_hides_how_far_back() -> None:

@@ -115,7 +115,9 @@ def moved_view(
 
     Returns:
         ``image' (B, C, H, W)`` (bilinear, border padding), ``depth' (B, 1, H, W)`` (z in the new
-        camera) and ``valid (B, 1, H, W)`` (bool).
+        camera), ``valid (B, 1, H, W)`` (bool) and ``grid (B, H, W, 2)``: where each new pixel
+        samples the source (``grid_sample``'s coordinates, ``align_corners=True``), to carry other
+        maps of the source into the new view.
     """
     B, _, H, W = depth.shape
     T = torch.eye(4, dtype=depth.dtype, device=depth.device).repeat(B, 1, 1)
@@ -130,4 +132,4 @@ def moved_view(
     grid, _, inside = _project(z, T, K, K)
     settled = (z - prev).abs() <= tol * z
     warped = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return warped, z, inside & settled
+    return warped, z, inside & settled, grid
