@@ -5,7 +5,8 @@
     (webdataset over the tars) vs indexed random access read rate of image bytes;
 (b) a full train step (batch to device, forward, losses, finite check, backward, Adam step, log)
     vs the bare forward + backward of the networks through ``triplet_loss`` on the same batch;
-(c) peak RSS of a training process at 640x480, batch 6 (a child process, 2 steps).
+(c) peak RSS of a training process at 640x480, batch 6 (a child process, 2 steps);
+(d) at 128x96, the bare forward + backward with the novel views' term (``--w-novel-view``) vs without.
 At 640x480 the step runs with ``recompute_warps=True`` (without it, > 21 GB: the OOM killer here).
 
     python benchmarks/bench_train.py [--quick] [--threads N]
@@ -76,8 +77,11 @@ def read_rates(shards: Path) -> tuple[float, float]:
     return ra, n / (time.perf_counter() - t0)
 
 
-def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
-    """Seconds of (full train step, bare forward+backward) on one batch of 6 triplets."""
+def step_rates(shards: Path, w: int, h: int, reps: int, novel_view: bool = False) -> tuple[float, float, float]:
+    """Seconds of (full train step, bare forward+backward, the bare one with ``w_novel_view`` 0.5
+    when ``novel_view``, else NaN) on one batch of 6 triplets, interleaved."""
+    import dataclasses
+
     import torch
 
     from relocdepth.data import collate
@@ -100,7 +104,8 @@ def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
         tr, state = setup(shards, Path(tmp) / "run", cfg)
         trips = list(tr.sampler.iter_epoch(0))[:6]
         raw = collate([tr.data[t] for t in trips])
-        full, bare = [], []
+        full, bare, nv = [], [], []
+        nv_cfg = dataclasses.replace(tr.cfg.method, w_novel_view=0.5)
 
         def sync() -> None:
             if tr.device.type == "cuda":
@@ -121,9 +126,17 @@ def step_rates(shards: Path, w: int, h: int, reps: int) -> tuple[float, float]:
             loss2.backward()
             sync()
             bare.append(time.perf_counter() - t0)
+            if novel_view:
+                t0 = time.perf_counter()
+                loss3, _, _ = triplet_loss(tr.nets, b["images"], b["inputs"], b["K"], nv_cfg)
+                tr.optimizer.zero_grad(set_to_none=True)
+                loss3.backward()
+                sync()
+                nv.append(time.perf_counter() - t0)
         tr.log.close()
         assert isinstance(state, RunState) and torch.isfinite(loss)
-    return statistics.median(full[1:] or full), statistics.median(bare[1:] or bare)
+    nv_s = statistics.median(nv[1:] or nv) if nv else float("nan")
+    return statistics.median(full[1:] or full), statistics.median(bare[1:] or bare), nv_s
 
 
 def child_rss(shards: str) -> None:
@@ -160,11 +173,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         sizes = {(128, 96): make_shards(Path(tmp), 128, 96, 60), (640, 480): make_shards(Path(tmp), 640, 480, 30)}
         for (w, h), shards in sizes.items():
-            step_s, bare_s = step_rates(shards, w, h, reps if w == 128 else 2)
+            step_s, bare_s, nv_s = step_rates(shards, w, h, reps if w == 128 else 2, novel_view=w == 128)
             consume = 6 / step_s
             print(f"\n== {w}x{h}, batch 6 ==")
             print(f"(b) train step {step_s:.2f} s vs bare forward+backward {bare_s:.2f} s: "
                   f"ratio {step_s / bare_s:.3f} (goal <= 1.15)")
+            if w == 128:
+                print(f"(d) bare forward+backward with --w-novel-view {nv_s:.2f} s: ratio {nv_s / bare_s:.3f} to without")
             print(f"    a train step consumes {consume:.2f} triplets/s")
             for workers in (0, 1, 2):
                 r = loader_rate(shards, w, h, workers, batches)
