@@ -88,6 +88,8 @@ class MethodConfig:
             raise ValueError(f"w_depth_consistency must be >= 0, not {self.w_depth_consistency}")
         if not self.w_novel_view >= 0:
             raise ValueError(f"w_novel_view must be >= 0, not {self.w_novel_view}")
+        if self.w_novel_view > 0 and not self.use_dsc:
+            raise ValueError("w_novel_view needs the DSC network (it holds the DSC's pose of the new view)")
         if not 0 < self.novel_view_back <= 1:
             raise ValueError(f"novel_view_back must be in (0, 1], not {self.novel_view_back}")
 
@@ -267,7 +269,7 @@ def triplet_loss(
     with torch.autocast(images.device.type, enabled=False):
         total, parts, diag = _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot,
                                                 None if depth_override is None else depth_override.to(dt))
-    if cfg.w_novel_view > 0 and cfg.use_dsc:
+    if cfg.w_novel_view > 0:
         parts_nv, diag_nv = novel_view_loss(nets, inputs[:, 1], disps[0].reshape(B, 3, 1, H, W)[:, 1],
                                             pose_out.reshape(B, 3, *pose_out.shape[1:])[:, 1].detach(),
                                             K[:, 1].to(dt), cfg)
@@ -286,10 +288,10 @@ def novel_view_loss(
     reaches it) and DSC output ``dsc`` (detached).
 
     Each frame is seen from ``back (B,)`` (default: uniform in [0, ``cfg.novel_view_back``]) times
-    its median depth behind it. The new view's pixels outside a central window, the part that a
-    view moved back by the most it can be sees of the frame, are grey, so that the border's width
-    says nothing of how far back it is; those that the frame does not show (valid = False) count
-    in neither term.
+    its median depth behind it. The new view's pixels outside a central window (what a view moved
+    back by ``cfg.novel_view_back`` shows of a wall the frame sees whole) are grey, so that the
+    border's width says nothing of how far back it is; those that the frame does not show (valid =
+    False) count in neither term.
 
     Returns ``parts``: ``L_nv_depth`` (mean over valid pixels of |log| of the depth network's
     depth on the new view over its depth there, that is the frame's depth carried into the new view:

@@ -166,6 +166,22 @@ def test_novel_view_weight_is_wired() -> None:
     (parts["L_nv_depth"] + parts["L_nv_pose"]).backward()
     for net in (nets.depth, nets.dsc):
         assert sum(float(p.grad.abs().sum()) for p in net.parameters() if p.grad is not None) > 0
-    for bad in ({"w_novel_view": -1.0}, {"novel_view_back": 0.0}, {"novel_view_back": 1.5}):
+    for bad in ({"w_novel_view": -1.0}, {"novel_view_back": 0.0}, {"novel_view_back": 1.5},
+                {"w_novel_view": 0.5, "use_dsc": False}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             MethodConfig(**bad)
+
+
+def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_path) -> None:
+    from relocdepth.cli.main import app
+    from relocdepth.train import TrainConfig
+    from typer.testing import CliRunner
+
+    cfg = TrainConfig.from_dict({"w_novel_view": 0.5, "novel_view_back": 0.3})
+    assert cfg.method.w_novel_view == 0.5 and cfg.method.novel_view_back == 0.3
+    run = tmp_path / "run"
+    for args, message in ((["--w-novel-view", "0.5", "--no-dsc"], "w_novel_view needs the DSC network"),
+                          (["--novel-view-back", "2"], "novel_view_back must be in (0, 1]")):
+        res = CliRunner().invoke(app, ["train", str(tmp_path), "-o", str(run), *args])
+        assert res.exit_code == 2 and message in res.output, res.output
+        assert len(res.output.strip().splitlines()) == 1 and not run.exists()
