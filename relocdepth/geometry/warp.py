@@ -94,12 +94,13 @@ def _project(depth_t: Tensor, T_t2s: Tensor, K_t: Tensor, K_s: Tensor) -> tuple[
 
 def moved_view(
     image: Tensor, depth: Tensor, t: Tensor, K: Tensor, iters: int = 5, tol: float = 0.01
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The view of a camera moved by ``t`` (its centre in the source camera's frame, the orientation
     unchanged), synthesised from the source image and depth: a new view of the same scene.
 
     Each new pixel ``p'`` looks along ``t + z' K^-1 p'``; its depth ``z'`` is found by fixed-point
-    iteration, ``z' = D(p) - t_z`` at the source pixel ``p`` it projects to (from ``z' = D(p') - t_z``).
+    iteration, ``z' = D(p) - t_z`` at the source pixel ``p`` it projects to (starting from
+    ``z' = D(p') - t_z``).
     A camera moved back (``t_z < 0``) sees the source's content within a narrower part of its
     image, and points seen only by the new camera (beyond the source image's edge, behind an
     occluding edge) have no value: where the source pixel falls outside the image or the iteration
@@ -126,7 +127,7 @@ def moved_view(
     z = (depth - t_z).clamp(min=MIN_WARP_DEPTH)
     prev = z
     for _ in range(iters):
-        grid, _, inside = _project(z, T, K, K)
+        grid, _, _ = _project(z, T, K, K)
         d_src = F.grid_sample(depth, grid, mode="bilinear", padding_mode="border", align_corners=True)
         prev, z = z, (d_src - t_z).clamp(min=MIN_WARP_DEPTH)
     grid, _, inside = _project(z, T, K, K)
