@@ -340,17 +340,23 @@ def novel_view_loss(
         n_valid = m.sum().clamp(min=1)
         l_depth = (log_ratio.abs() * m).sum() / n_valid
         q_cells, c_cells = geo.cell_poses(dsc_new, z_cells, K)
-        n = q_cells.shape[1]
-        T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3))
-        T_ref = T_new[:, None].expand(B, n, 4, 4).reshape(-1, 4, 4)
-        w_t = (1.0 / med)[:, None].expand(B, n).reshape(-1)
-        l_pose = relative_pose_consistency(T_cells, T_ref, w_t).mean()
+        T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3)).reshape(B, -1, 4, 4)
+        l_pose = _pose_target_loss(T_cells, T_new, med)
         with torch.no_grad():
             ratio = torch.exp(log_ratio.detach()[valid]).median() if bool(valid.any()) else log_ratio.new_ones(())
             c_err = (c_cells.detach().mean(dim=1) - T_new[:, :3, 3]).norm(dim=-1) / med
             diag = {"nv_depth_ratio": float(ratio), "nv_back": float(back.mean()),
                     "nv_trans": float(c_err.mean()), "nv_valid": float(m.mean())}
     return {"L_nv_depth": l_depth, "L_nv_pose": l_pose}, diag
+
+
+def _pose_target_loss(T_cells: Tensor, T_ref: Tensor, depth: Tensor) -> Tensor:
+    """Mean of :func:`relative_pose_consistency` of every cell's pose ``T_cells (N, n, 4, 4)`` with
+    its image's target ``T_ref (N, 4, 4)``, translations over the image's scene depth ``(N,)``."""
+    N, n = T_cells.shape[:2]
+    T_t = T_ref[:, None].expand(N, n, 4, 4).reshape(-1, 4, 4)
+    w_t = (1.0 / depth)[:, None].expand(N, n).reshape(-1)
+    return relative_pose_consistency(T_cells.reshape(-1, 4, 4), T_t, w_t).mean()
 
 
 def _triplet_loss_fp32(
@@ -449,14 +455,11 @@ def _triplet_loss_fp32(
         # every cell's pose (w/o DSC the image's) against its frame's anchor
         if cons is not None:
             q_cells, c_cells = cons[1], cons[2]  # (B * 3, n, 4), (B * 3, n, 3)
-            T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3))
+            T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3)).reshape(B * 3, -1, 4, 4)
         else:
-            T_cells = T.reshape(-1, 4, 4)
-        n = T_cells.shape[0] // (B * 3)
+            T_cells = T.reshape(B * 3, 1, 4, 4)
         T_anchor = boot.T_anchor.to(T.dtype).reshape(B * 3, 4, 4)
-        T_a = T_anchor[:, None].expand(B * 3, n, 4, 4).reshape(-1, 4, 4)
-        w_t = (1.0 / scene_depth)[:, None].expand(B, 3 * n).reshape(-1)
-        boot_parts["L_anchor"] = relative_pose_consistency(T_cells, T_a, w_t).mean()
+        boot_parts["L_anchor"] = _pose_target_loss(T_cells, T_anchor, scene_depth.repeat_interleave(3))
         with torch.no_grad():
             t_a, r_a = geo.pose_errors(T_cons.detach().reshape(-1, 4, 4), T_anchor)
             boot_diag.update({"anchor_trans": float(t_a.mean()), "anchor_rot_deg": float(r_a.mean())})
