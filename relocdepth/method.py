@@ -76,6 +76,9 @@ class MethodConfig:
     # otherwise place at the training frames' distances. 0: off.
     w_novel_view: float = 0.0
     novel_view_back: float = 0.2
+    # With w_novel_view: whether L_nv also holds the DSC network's pose of the new view (L_nv_pose);
+    # False: the depth network's term alone (L_nv_depth), which needs no DSC network.
+    novel_view_pose: bool = True
     min_depth: float = 0.1
     max_depth: float = 100.0
 
@@ -88,8 +91,9 @@ class MethodConfig:
             raise ValueError(f"w_depth_consistency must be >= 0, not {self.w_depth_consistency}")
         if not self.w_novel_view >= 0:
             raise ValueError(f"w_novel_view must be >= 0, not {self.w_novel_view}")
-        if self.w_novel_view > 0 and not self.use_dsc:
-            raise ValueError("w_novel_view needs the DSC network (it holds the DSC's pose of the new view)")
+        if self.w_novel_view > 0 and self.novel_view_pose and not self.use_dsc:
+            raise ValueError("w_novel_view needs the DSC network (it holds the DSC's pose of the new view; "
+                             "novel_view_pose False does without)")
         if not 0 < self.novel_view_back <= 1:
             raise ValueError(f"novel_view_back must be in (0, 1], not {self.novel_view_back}")
 
@@ -270,9 +274,9 @@ def triplet_loss(
         total, parts, diag = _triplet_loss_fp32(disps, pose_out, images.to(dt), K.to(dt), cfg, T_boot, boot,
                                                 None if depth_override is None else depth_override.to(dt))
     if cfg.w_novel_view > 0:
+        dsc_mid = pose_out.reshape(B, 3, *pose_out.shape[1:])[:, 1].detach() if cfg.novel_view_pose else None
         parts_nv, diag_nv = novel_view_loss(nets, inputs[:, 1], disps[0].reshape(B, 3, 1, H, W)[:, 1],
-                                            pose_out.reshape(B, 3, *pose_out.shape[1:])[:, 1].detach(),
-                                            K[:, 1].to(dt), cfg)
+                                            dsc_mid, K[:, 1].to(dt), cfg)
         total = total + cfg.w_novel_view * (parts_nv["L_nv_depth"] + parts_nv["L_nv_pose"])
         parts.update(parts_nv)
         diag.update(diag_nv)
@@ -280,12 +284,13 @@ def triplet_loss(
 
 
 def novel_view_loss(
-    nets: Networks, inputs: Tensor, disp: Tensor, dsc: Tensor, K: Tensor, cfg: MethodConfig,
+    nets: Networks, inputs: Tensor, disp: Tensor, dsc: Tensor | None, K: Tensor, cfg: MethodConfig,
     back: Tensor | None = None,
 ) -> tuple[dict[str, Tensor], dict[str, float]]:
     """``L_nv`` (see ``MethodConfig.w_novel_view``) of frames ``inputs (B, 3, H, W)`` (the network
     inputs), from their disparity ``disp (B, 1, H, W)`` (sigmoid, scale 0; L_nv_depth's gradient
-    reaches it) and DSC output ``dsc`` (detached).
+    reaches it) and DSC output ``dsc`` (detached; None, or ``cfg.novel_view_pose`` False: no
+    ``L_nv_pose``, returned as 0, and no ``nv_trans``).
 
     Each frame is seen from ``back (B,)`` (default: uniform in [0, ``cfg.novel_view_back``]) times
     its median depth behind it. The new view's pixels outside a central window (what a view moved
@@ -310,7 +315,7 @@ def novel_view_loss(
         depth_grad = disp_to_depth(disp.to(dt), cfg.min_depth, cfg.max_depth)
     with torch.no_grad(), torch.autocast(inputs.device.type, enabled=False):
         depth = depth_grad.detach()
-        T_src = _absolute_poses(dsc.detach().to(dt), depth, K, True, "mean")[0]
+        with_pose = dsc is not None and cfg.novel_view_pose
         med = depth.reshape(B, -1).median(dim=1).values
         if back is None:
             back = torch.rand(B, dtype=dt, device=inputs.device) * cfg.novel_view_back
@@ -328,25 +333,30 @@ def novel_view_loss(
         # each cell's depth from its valid pixels (every cell keeps some: the window is central)
         m = valid.to(dt)
         z_cells = geo.pool_depth(z * m) / geo.pool_depth(m).clamp(min=1e-6)
-        shift = torch.eye(4, dtype=dt, device=inputs.device).repeat(B, 1, 1)
-        shift[:, :3, 3] = t
-        T_new = T_src @ shift
+        if with_pose:
+            T_src = _absolute_poses(dsc.detach().to(dt), depth, K, True, "mean")[0]
+            shift = torch.eye(4, dtype=dt, device=inputs.device).repeat(B, 1, 1)
+            shift[:, :3, 3] = t
+            T_new = T_src @ shift
     x = image.to(inputs.dtype)
     depth_new = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
-    dsc_new = nets.dsc(x).to(dt)
     with torch.autocast(inputs.device.type, enabled=False):
         carried = F.grid_sample(depth_grad, grid, mode="bilinear", padding_mode="border", align_corners=True)
         log_ratio = torch.log(depth_new) - torch.log(carried * move_ratio)
         n_valid = m.sum().clamp(min=1)
         l_depth = (log_ratio.abs() * m).sum() / n_valid
+        with torch.no_grad():
+            ratio = torch.exp(log_ratio.detach()[valid]).median() if bool(valid.any()) else log_ratio.new_ones(())
+            diag = {"nv_depth_ratio": float(ratio), "nv_back": float(back.mean()), "nv_valid": float(m.mean())}
+    if not with_pose:
+        return {"L_nv_depth": l_depth, "L_nv_pose": l_depth.new_zeros(())}, diag
+    dsc_new = nets.dsc(x).to(dt)
+    with torch.autocast(inputs.device.type, enabled=False):
         q_cells, c_cells = geo.cell_poses(dsc_new, z_cells, K)
         T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3)).reshape(B, -1, 4, 4)
         l_pose = _pose_target_loss(T_cells, T_new, med)
         with torch.no_grad():
-            ratio = torch.exp(log_ratio.detach()[valid]).median() if bool(valid.any()) else log_ratio.new_ones(())
-            c_err = (c_cells.detach().mean(dim=1) - T_new[:, :3, 3]).norm(dim=-1) / med
-            diag = {"nv_depth_ratio": float(ratio), "nv_back": float(back.mean()),
-                    "nv_trans": float(c_err.mean()), "nv_valid": float(m.mean())}
+            diag["nv_trans"] = float(((c_cells.detach().mean(dim=1) - T_new[:, :3, 3]).norm(dim=-1) / med).mean())
     return {"L_nv_depth": l_depth, "L_nv_pose": l_pose}, diag
 
 

@@ -129,6 +129,28 @@ def test_novel_view_loss_is_zero_for_networks_that_see_the_move() -> None:
     assert float(src3.grad.abs().sum()) > 0 and float(disp3.grad.abs().sum()) > 0
 
 
+def test_novel_view_depth_only_is_the_depth_term_alone() -> None:
+    """With ``novel_view_pose`` False the depth term is the same number as with both, the pose term
+    is 0 and the DSC network is neither run on the new view nor needed at all."""
+    back = 0.2
+    c = _plane_case(back)
+    inputs = torch.rand(1, 3, H, W)
+    stay = _nets(c["disp"], geo.dsc_from_pose(c["T"], c["cells"] * (1 + back), c["K"]))
+    both, _ = novel_view_loss(stay, inputs, c["disp"], c["dsc"], c["K"], c["cfg"], back=torch.tensor([back]))
+    cfg = MethodConfig(w_novel_view=1.0, novel_view_back=0.25, novel_view_pose=False, use_dsc=False)
+
+    def no_dsc(x):
+        raise AssertionError("the DSC network ran")
+
+    alone = SimpleNamespace(depth=stay.depth, dsc=no_dsc)
+    for dsc in (c["dsc"], None):
+        parts, diag = novel_view_loss(alone, inputs, c["disp"], dsc, c["K"], cfg, back=torch.tensor([back]))
+        assert float(parts["L_nv_depth"]) == pytest.approx(math.log(1 + back), rel=1e-3)
+        assert float(parts["L_nv_depth"]) == pytest.approx(float(both["L_nv_depth"]), rel=1e-6)
+        assert float(parts["L_nv_pose"]) == 0 and "nv_trans" not in diag
+    assert float(both["L_nv_pose"]) == pytest.approx(back, rel=1e-3)
+
+
 def test_novel_view_window_hides_how_far_back() -> None:
     """The new view's pixels outside the central window are grey whatever the move, so the border
     says nothing of it; inside, the frame's content."""
@@ -166,6 +188,15 @@ def test_novel_view_weight_is_wired() -> None:
     (parts["L_nv_depth"] + parts["L_nv_pose"]).backward()
     for net in (nets.depth, nets.dsc):
         assert sum(float(p.grad.abs().sum()) for p in net.parameters() if p.grad is not None) > 0
+    # the depth term alone, with the two-frame pose network instead of the DSC
+    torch.manual_seed(0)
+    nets_p = build_networks(ModelConfig(use_dsc=False))
+    cfg_p = MethodConfig(w_novel_view=0.5, novel_view_pose=False, use_dsc=False)
+    total, parts, _ = triplet_loss(nets_p, imgs, imgs, K, cfg_p)
+    assert float(parts["L_nv_pose"]) == 0 and float(parts["L_nv_depth"].detach()) > 0
+    nets_p.zero_grad()
+    parts["L_nv_depth"].backward()
+    assert sum(float(p.grad.abs().sum()) for p in nets_p.depth.parameters() if p.grad is not None) > 0
     for bad in ({"w_novel_view": -1.0}, {"novel_view_back": 0.0}, {"novel_view_back": 1.5},
                 {"w_novel_view": 0.5, "use_dsc": False}):
         with pytest.raises(ValueError, match=next(iter(bad))):
@@ -179,6 +210,7 @@ def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_pat
 
     cfg = TrainConfig.from_dict({"w_novel_view": 0.5, "novel_view_back": 0.3})
     assert cfg.method.w_novel_view == 0.5 and cfg.method.novel_view_back == 0.3
+    assert cfg.method.novel_view_pose and not TrainConfig.from_dict({"novel_view_pose": False}).method.novel_view_pose
     run = tmp_path / "run"
     for args, message in ((["--w-novel-view", "0.5", "--no-dsc"], "w_novel_view needs the DSC network"),
                           (["--novel-view-back", "2"], "novel_view_back must be in (0, 1]")):
