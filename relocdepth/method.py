@@ -8,7 +8,9 @@ aggregation, Sec. IV-C).
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -339,7 +341,8 @@ def novel_view_loss(
             shift[:, :3, 3] = t
             T_new = T_src @ shift
     x = image.to(inputs.dtype)
-    depth_new = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
+    with _running_statistics_kept(nets.depth):
+        depth_new = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
     with torch.autocast(inputs.device.type, enabled=False):
         carried = F.grid_sample(depth_grad, grid, mode="bilinear", padding_mode="border", align_corners=True)
         log_ratio = torch.log(depth_new) - torch.log(carried * move_ratio)
@@ -350,7 +353,8 @@ def novel_view_loss(
             diag = {"nv_depth_ratio": float(ratio), "nv_back": float(back.mean()), "nv_valid": float(m.mean())}
     if not with_pose:
         return {"L_nv_depth": l_depth, "L_nv_pose": l_depth.new_zeros(())}, diag
-    dsc_new = nets.dsc(x).to(dt)
+    with _running_statistics_kept(nets.dsc):
+        dsc_new = nets.dsc(x).to(dt)
     with torch.autocast(inputs.device.type, enabled=False):
         q_cells, c_cells = geo.cell_poses(dsc_new, z_cells, K)
         T_cells = geo.pose_matrix(q_cells.reshape(-1, 4), c_cells.reshape(-1, 3)).reshape(B, -1, 4, 4)
@@ -358,6 +362,25 @@ def novel_view_loss(
         with torch.no_grad():
             diag["nv_trans"] = float(((c_cells.detach().mean(dim=1) - T_new[:, :3, 3]).norm(dim=-1) / med).mean())
     return {"L_nv_depth": l_depth, "L_nv_pose": l_pose}, diag
+
+
+@contextmanager
+def _running_statistics_kept(net: object) -> Iterator[None]:
+    """Within it the BatchNorm layers of ``net`` (if a module) normalise by the batch's statistics
+    as in training but leave their running statistics, which ``localize`` and ``evaluate`` use, as
+    they were: the novel views (grey border, zoomed out) are not the images those will see, and
+    one pass of them a step would otherwise pull the statistics halfway towards theirs."""
+    layers = [m for m in net.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)
+              and m.training and m.track_running_stats] if isinstance(net, torch.nn.Module) else []
+    saved = [(m.momentum, m.num_batches_tracked.clone()) for m in layers]
+    for m in layers:
+        m.momentum = 0.0  # running = (1 - momentum) running + momentum batch
+    try:
+        yield
+    finally:
+        for m, (momentum, tracked) in zip(layers, saved):
+            m.momentum = momentum
+            m.num_batches_tracked.copy_(tracked)
 
 
 def _pose_target_loss(T_cells: Tensor, T_ref: Tensor, depth: Tensor) -> Tensor:

@@ -151,6 +151,30 @@ def test_novel_view_depth_only_is_the_depth_term_alone() -> None:
     assert float(both["L_nv_pose"]) == pytest.approx(back, rel=1e-3)
 
 
+def test_novel_view_leaves_the_running_statistics() -> None:
+    """The networks' passes on the new views (training mode) leave the BatchNorm running statistics
+    that localize and evaluate use as they were, and the layers' momentum as it was; a pass on the
+    same views outside the term moves them."""
+    torch.manual_seed(0)
+    nets = build_networks(ModelConfig())
+    nets.train()
+    gen = torch.Generator().manual_seed(5)
+    x = torch.rand(2, 3, H, W, generator=gen)
+    disp = nets.depth(x)[0].detach()
+    dsc = nets.dsc(x).detach()
+    before = {k: v.clone() for k, v in nets.state_dict().items() if "running" in k or "tracked" in k}
+    parts, _ = novel_view_loss(nets, x, disp, dsc, _K(2), MethodConfig(w_novel_view=1.0))
+    (parts["L_nv_depth"] + parts["L_nv_pose"]).backward()
+    after = nets.state_dict()
+    assert before and all(torch.equal(v, after[k]) for k, v in before.items())
+    norms = [m for m in nets.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    assert norms and all(m.momentum == 0.1 for m in norms)
+    nets.depth(x)
+    nets.dsc(x)
+    moved = nets.state_dict()
+    assert any(not torch.equal(v, moved[k]) for k, v in before.items() if "running_mean" in k)
+
+
 def test_novel_view_window_hides_how_far_back() -> None:
     """The new view's pixels outside the central window are grey whatever the move, so the border
     says nothing of it; inside, the frame's content."""
