@@ -332,10 +332,10 @@ def novel_view_loss(
         window = (u.abs()[None, :] <= keep * W / 2) & (v.abs()[:, None] <= keep * H / 2)
         image = torch.where(window, image, torch.full_like(image, 0.5))
         valid = valid & window
-        # each cell's depth from its valid pixels (every cell keeps some: the window is central)
         m = valid.to(dt)
-        z_cells = geo.pool_depth(z * m) / geo.pool_depth(m).clamp(min=1e-6)
         if with_pose:
+            # each cell's depth from its valid pixels (every cell keeps some: the window is central)
+            z_cells = geo.pool_depth(z * m) / geo.pool_depth(m).clamp(min=1e-6)
             T_src = _absolute_poses(dsc.detach().to(dt), depth, K, True, "mean")[0]
             shift = torch.eye(4, dtype=dt, device=inputs.device).repeat(B, 1, 1)
             shift[:, :3, 3] = t
