@@ -81,6 +81,9 @@ class MethodConfig:
     # With w_novel_view: whether L_nv also holds the DSC network's pose of the new view (L_nv_pose);
     # False: the depth network's term alone (L_nv_depth), which needs no DSC network.
     novel_view_pose: bool = True
+    # With w_novel_view: the term in the first N training steps only (the trainer leaves it out from
+    # step N on); 0: in every step.
+    novel_view_steps: int = 0
     min_depth: float = 0.1
     max_depth: float = 100.0
 
@@ -96,6 +99,8 @@ class MethodConfig:
         if self.w_novel_view > 0 and self.novel_view_pose and not self.use_dsc:
             raise ValueError("w_novel_view needs the DSC network (it holds the DSC's pose of the new view; "
                              "novel_view_pose False does without)")
+        if self.novel_view_steps < 0:
+            raise ValueError(f"novel_view_steps must be >= 0, not {self.novel_view_steps}")
         if not 0 < self.novel_view_back <= 1:
             raise ValueError(f"novel_view_back must be in (0, 1], not {self.novel_view_back}")
 

@@ -387,6 +387,12 @@ def bootstrap_at(cfg: TrainConfig, step: int) -> tuple[bool, float]:
     return cfg.bootstrap != "off" and step < cfg.bootstrap_steps, cfg.w_bootstrap * _bootstrap_fraction(cfg, step)
 
 
+def novel_view_at(cfg: TrainConfig, step: int) -> bool:
+    """Whether L_nv is in the loss at ``step`` (its weight set, and before ``novel_view_steps``)."""
+    m = cfg.method
+    return m.w_novel_view > 0 and (m.novel_view_steps == 0 or step < m.novel_view_steps)
+
+
 def anchor_at(cfg: TrainConfig, step: int) -> float:
     """Weight of the DSC-vs-anchor term at ``step`` (0 before ``anchor_step`` and without anchors;
     it fades out with the bootstrap unless ``anchor_hold``)."""
@@ -469,13 +475,16 @@ class _LossModule:
 
         from relocdepth.method import triplet_loss
 
+        without_nv = dataclasses.replace(method_cfg, w_novel_view=0.0)  # past novel_view_steps
+
         class TripletLossModule(torch.nn.Module):
             def __init__(self) -> None:
                 super().__init__()
                 self.nets = nets
 
-            def forward(self, images: Any, inputs: Any, K: Any, boot: Any = None, depth: Any = None) -> Any:
-                return triplet_loss(self.nets, images, inputs, K, method_cfg, boot, depth)
+            def forward(self, images: Any, inputs: Any, K: Any, boot: Any = None, depth: Any = None,
+                        novel_view: bool = True) -> Any:
+                return triplet_loss(self.nets, images, inputs, K, method_cfg if novel_view else without_nv, boot, depth)
 
         return TripletLossModule()
 
@@ -794,7 +803,7 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0,
         depth = _oracle_depth_batch(tr.gt_depths, b["index"].numpy(), b["crop"].numpy(), W, H).to(tr.device)
     dtype = torch.bfloat16 if tr.cfg.amp_dtype == "bf16" else torch.float16
     with torch.autocast(tr.device.type, dtype=dtype, enabled=tr.cfg.amp):
-        return tr.loss_module(b["images"], b["inputs"], b["K"], boot, depth)
+        return tr.loss_module(b["images"], b["inputs"], b["K"], boot, depth, novel_view_at(tr.cfg, step))
 
 
 def build_anchors(tr: Trainer, state: RunState) -> None:

@@ -241,3 +241,36 @@ def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_pat
         res = CliRunner().invoke(app, ["train", str(tmp_path), "-o", str(run), *args])
         assert res.exit_code == 2 and message in res.output, res.output
         assert len(res.output.strip().splitlines()) == 1 and not run.exists()
+
+
+def test_novel_view_steps_leave_the_term_out_after_them(synth_shards, tmp_path) -> None:
+    """`--novel-view-steps 2`: the logged steps 1 and 2 hold L_nv's terms and a positive total of
+    them, steps 3 and 4 neither; the option reaches the run's config, and a negative count is one
+    error line with no run folder."""
+    import json
+
+    from relocdepth.cli.main import app
+    from relocdepth.train import TrainConfig, novel_view_at
+    from typer.testing import CliRunner
+
+    cfg = TrainConfig.from_dict({"w_novel_view": 0.1, "novel_view_steps": 2})
+    assert [novel_view_at(cfg, s) for s in range(4)] == [True, True, False, False]
+    assert all(novel_view_at(TrainConfig.from_dict({"w_novel_view": 0.1}), s) for s in (0, 10 ** 6))
+    assert not novel_view_at(TrainConfig.from_dict({"novel_view_steps": 2}), 0)
+    run = tmp_path / "run"
+    common = ["train", str(synth_shards), "-o", str(run), "--size", "64x64", "--batch-size", "2", "--pretrained",
+              "none", "--workers", "0", "--no-progress", "--log-every", "1", "--max-steps", "4", "--w-novel-view", "0.5"]
+    res = CliRunner().invoke(app, [*common, "--novel-view-steps", "2"])
+    assert res.exit_code == 0, res.output[-3000:]
+    assert json.loads((run / "config.json").read_text())["train"]["method"]["novel_view_steps"] == 2
+    steps = [e for e in map(json.loads, (run / "logs" / "train.jsonl").read_text().splitlines())
+             if e["kind"] == "step"]
+    assert [e["step"] for e in steps] == [1, 2, 3, 4]
+    for e in steps[:2]:
+        assert e["parts"]["L_nv_depth"] + e["parts"]["L_nv_pose"] > 0
+    for e in steps[2:]:
+        assert "L_nv_depth" not in e["parts"] and "L_nv_pose" not in e["parts"]
+    bad = tmp_path / "bad"
+    res = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(bad), "--novel-view-steps", "-1"])
+    assert res.exit_code == 2 and "novel_view_steps must be >= 0" in res.output, res.output
+    assert len(res.output.strip().splitlines()) == 1 and not bad.exists()
