@@ -78,6 +78,9 @@ class MethodConfig:
     # otherwise place at the training frames' distances. 0: off.
     w_novel_view: float = 0.0
     novel_view_back: float = 0.2
+    # With w_novel_view: the most the new views move forward instead, as a fraction of the median
+    # depth (the move drawn uniformly from [-novel_view_forward, novel_view_back]); 0: back only.
+    novel_view_forward: float = 0.0
     # With w_novel_view: whether L_nv also holds the DSC network's pose of the new view (L_nv_pose);
     # False: the depth network's term alone (L_nv_depth), which needs no DSC network.
     novel_view_pose: bool = True
@@ -103,6 +106,8 @@ class MethodConfig:
             raise ValueError(f"novel_view_steps must be >= 0, not {self.novel_view_steps}")
         if not 0 < self.novel_view_back <= 1:
             raise ValueError(f"novel_view_back must be in (0, 1], not {self.novel_view_back}")
+        if not 0 <= self.novel_view_forward <= 0.5:
+            raise ValueError(f"novel_view_forward must be in [0, 0.5], not {self.novel_view_forward}")
 
 
 @dataclass(frozen=True)
@@ -299,8 +304,8 @@ def novel_view_loss(
     reaches it) and DSC output ``dsc`` (detached; None, or ``cfg.novel_view_pose`` False: no
     ``L_nv_pose``, returned as 0, and no ``nv_trans``).
 
-    Each frame is seen from ``back (B,)`` (default: uniform in [0, ``cfg.novel_view_back``]) times
-    its median depth behind it. The new view's pixels outside a central window (what a view moved
+    Each frame is seen from ``back (B,)`` (default: uniform in [-``cfg.novel_view_forward``,
+    ``cfg.novel_view_back``]) times its median depth behind it (negative: in front). The new view's pixels outside a central window (what a view moved
     back by ``cfg.novel_view_back`` shows of a wall the frame sees whole) are grey, so that the
     border's width says nothing of how far back it is; those that the frame does not show (valid =
     False) count in neither term.
@@ -325,7 +330,8 @@ def novel_view_loss(
         with_pose = dsc is not None and cfg.novel_view_pose
         med = depth.reshape(B, -1).median(dim=1).values
         if back is None:
-            back = torch.rand(B, dtype=dt, device=inputs.device) * cfg.novel_view_back
+            span = cfg.novel_view_back + cfg.novel_view_forward
+            back = torch.rand(B, dtype=dt, device=inputs.device) * span - cfg.novel_view_forward
         t = torch.zeros(B, 3, dtype=dt, device=inputs.device)
         t[:, 2] = -back.to(dt) * med
         image, z, valid, grid = geo.moved_view(inputs.to(dt), depth, t, K)

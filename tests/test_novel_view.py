@@ -95,12 +95,12 @@ def _nets(depth_out: torch.Tensor, dsc_out: torch.Tensor) -> SimpleNamespace:
     return SimpleNamespace(depth=lambda x: [depth_out], dsc=lambda x: dsc_out)
 
 
-def test_novel_view_loss_is_zero_for_networks_that_see_the_move() -> None:
-    """A wall 2 m away, seen from 0.4 m further back: networks that place the new view there (depth
-    2.4, pose moved back) give L_nv = 0; networks that keep to the frame's distance (depth 2.0, the
-    frame's pose: what the networks do on views farther than their training frames) give the log
-    ratio and the move over the depth."""
-    back = 0.2
+@pytest.mark.parametrize("back", [0.2, -0.2])
+def test_novel_view_loss_is_zero_for_networks_that_see_the_move(back: float) -> None:
+    """A wall 2 m away, seen from 0.4 m further back (or nearer): networks that place the new view
+    there (depth 2.4 or 1.6, pose moved) give L_nv = 0; networks that keep to the frame's distance
+    (depth 2.0, the frame's pose: what the networks do on views farther than their training frames)
+    give the log ratio and the move over the depth."""
     c = _plane_case(back)
     cfg, d = c["cfg"], c["d"]
     inputs = torch.rand(1, 3, H, W)
@@ -113,18 +113,18 @@ def test_novel_view_loss_is_zero_for_networks_that_see_the_move() -> None:
     # every cell placing the new view where the frame was
     stay = _nets(c["disp"], geo.dsc_from_pose(c["T"], c["cells"] * (1 + back), c["K"]))
     parts, diag = novel_view_loss(stay, inputs, c["disp"], c["dsc"], c["K"], cfg, back=torch.tensor([back]))
-    assert float(parts["L_nv_depth"]) == pytest.approx(math.log(1 + back), rel=1e-3)
+    assert float(parts["L_nv_depth"]) == pytest.approx(abs(math.log(1 + back)), rel=1e-3)
     assert diag["nv_depth_ratio"] == pytest.approx(1 / (1 + back), rel=1e-3)
     # the centres 0.4 m off, over the frame's 2 m; the rotations right
-    assert diag["nv_trans"] == pytest.approx(back, rel=1e-3)
-    assert float(parts["L_nv_pose"]) == pytest.approx(back, rel=1e-3)
+    assert diag["nv_trans"] == pytest.approx(abs(back), rel=1e-3)
+    assert float(parts["L_nv_pose"]) == pytest.approx(abs(back), rel=1e-3)
     # a scale of all depths changes nothing (so the term cannot push one), and its gradient reaches
     # the frame's depth as well as the new view's
     disp3 = _disp_of(torch.full((1, 1, H, W), 3 * d), cfg).requires_grad_()
     stay3 = _nets(disp3, geo.dsc_from_pose(c["T"], c["cells"] * (1 + back), c["K"]))
     src3 = _disp_of(torch.full((1, 1, H, W), 3 * d), cfg).requires_grad_()
     parts3, _ = novel_view_loss(stay3, inputs, src3, c["dsc"], c["K"], cfg, back=torch.tensor([back]))
-    assert float(parts3["L_nv_depth"].detach()) == pytest.approx(math.log(1 + back), rel=1e-3)
+    assert float(parts3["L_nv_depth"].detach()) == pytest.approx(abs(math.log(1 + back)), rel=1e-3)
     parts3["L_nv_depth"].backward()
     assert float(src3.grad.abs().sum()) > 0 and float(disp3.grad.abs().sum()) > 0
 
@@ -182,7 +182,7 @@ def test_novel_view_window_hides_how_far_back() -> None:
     seen = []
     net = SimpleNamespace(depth=lambda x: (seen.append(x.clone()), [c["disp"]])[1], dsc=lambda x: c["dsc"])
     inputs = torch.rand(1, 3, H, W)
-    for back in (0.0, 0.05, 0.25):
+    for back in (0.0, 0.05, 0.25, -0.1):
         novel_view_loss(net, inputs, c["disp"], c["dsc"], c["K"], c["cfg"], back=torch.tensor([back]))
     keep = 1 / (1 + c["cfg"].novel_view_back)
     u = (torch.arange(W) - (W - 1) / 2).abs() <= keep * W / 2
@@ -222,9 +222,30 @@ def test_novel_view_weight_is_wired() -> None:
     parts["L_nv_depth"].backward()
     assert sum(float(p.grad.abs().sum()) for p in nets_p.depth.parameters() if p.grad is not None) > 0
     for bad in ({"w_novel_view": -1.0}, {"novel_view_back": 0.0}, {"novel_view_back": 1.5},
+                {"novel_view_forward": -0.1}, {"novel_view_forward": 0.6},
                 {"w_novel_view": 0.5, "use_dsc": False}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             MethodConfig(**bad)
+
+
+def test_novel_view_forward_draws_moves_both_ways() -> None:
+    """With ``novel_view_forward`` the drawn moves span [-forward, back] (the window stays the back
+    move's), without it [0, back]; each move gives the depth ratio of a wall seen from there."""
+    c = _plane_case(0.0)
+    inputs = torch.rand(1, 3, H, W)
+    net = _nets(c["disp"], c["dsc"])
+    for forward, lo, hi in ((0.0, 0.0, 0.25), (0.25, -0.25, 0.25), (0.1, -0.1, 0.25)):
+        cfg = MethodConfig(w_novel_view=1.0, novel_view_back=0.25, novel_view_forward=forward)
+        torch.manual_seed(0)
+        moves = []
+        for _ in range(200):
+            _, diag = novel_view_loss(net, inputs, c["disp"], c["dsc"], c["K"], cfg)
+            moves.append(diag["nv_back"])
+            # a network that keeps the frame's depth is off by the move's ratio
+            assert diag["nv_depth_ratio"] == pytest.approx(1 / (1 + diag["nv_back"]), rel=1e-3)
+        moves = np.array(moves)
+        assert lo <= moves.min() < lo + 0.03 and hi - 0.03 < moves.max() <= hi, (forward, moves.min(), moves.max())
+        assert abs(moves.mean() - (lo + hi) / 2) < 0.03
 
 
 def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_path) -> None:
@@ -232,12 +253,14 @@ def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_pat
     from relocdepth.train import TrainConfig
     from typer.testing import CliRunner
 
-    cfg = TrainConfig.from_dict({"w_novel_view": 0.5, "novel_view_back": 0.3})
+    cfg = TrainConfig.from_dict({"w_novel_view": 0.5, "novel_view_back": 0.3, "novel_view_forward": 0.2})
     assert cfg.method.w_novel_view == 0.5 and cfg.method.novel_view_back == 0.3
+    assert cfg.method.novel_view_forward == 0.2
     assert cfg.method.novel_view_pose and not TrainConfig.from_dict({"novel_view_pose": False}).method.novel_view_pose
     run = tmp_path / "run"
     for args, message in ((["--w-novel-view", "0.5", "--no-dsc"], "w_novel_view needs the DSC network"),
-                          (["--novel-view-back", "2"], "novel_view_back must be in (0, 1]")):
+                          (["--novel-view-back", "2"], "novel_view_back must be in (0, 1]"),
+                          (["--novel-view-forward", "0.9"], "novel_view_forward must be in [0, 0.5]")):
         res = CliRunner().invoke(app, ["train", str(tmp_path), "-o", str(run), *args])
         assert res.exit_code == 2 and message in res.output, res.output
         assert len(res.output.strip().splitlines()) == 1 and not run.exists()
