@@ -305,10 +305,10 @@ def novel_view_loss(
     ``L_nv_pose``, returned as 0, and no ``nv_trans``).
 
     Each frame is seen from ``back (B,)`` (default: uniform in [-``cfg.novel_view_forward``,
-    ``cfg.novel_view_back``]) times its median depth behind it (negative: in front). The new view's pixels outside a central window (what a view moved
-    back by ``cfg.novel_view_back`` shows of a wall the frame sees whole) are grey, so that the
-    border's width says nothing of how far back it is; those that the frame does not show (valid =
-    False) count in neither term.
+    ``cfg.novel_view_back``]) times its median depth behind it (negative: in front). The new
+    view's pixels outside a central window (what a view moved back by ``cfg.novel_view_back``
+    shows of a wall the frame sees whole) are grey whatever the move, so that the border's width
+    says nothing of it; those that the frame does not show (valid = False) count in neither term.
 
     Returns ``parts``: ``L_nv_depth`` (mean over valid pixels of |log| of the depth network's
     depth on the new view over its depth there, that is the frame's depth carried into the new view:
