@@ -142,6 +142,13 @@ class Bootstrap:
     direction part alone, which ``w_direction`` can weigh up without also weighing up the length
     (which the bootstrap takes from the current depth). The direction is what keeps the cameras'
     orientations and positions in one world (README, trial 18).
+
+    ``depth_ref`` ``(B, 3)``: each frame's mean log depth when the anchors were first built, which
+    the batch's mean log depth is held to with weight ``w_depth_scale`` (``L_scale``, the square of
+    the mean difference, ``scale_drift``): every other term leaves the depth's scale free (the
+    bootstrap's translations take their length from the depth, the novel views' ratios are scale
+    free), and the anchors are rebuilt in whatever units it has drifted to. Only the batch's mean
+    is held, so the term moves nothing but the one scale of all depths.
     """
 
     warps: bool
@@ -151,6 +158,8 @@ class Bootstrap:
     T_anchor: Tensor | None = None
     w_anchor: float = 0.0
     w_direction: float = 0.0
+    depth_ref: Tensor | None = None
+    w_depth_scale: float = 0.0
 
     @property
     def active(self) -> bool:
@@ -507,6 +516,13 @@ def _triplet_loss_fp32(
         with torch.no_grad():
             t_a, r_a = geo.pose_errors(T_cons.detach().reshape(-1, 4, 4), T_anchor)
             boot_diag.update({"anchor_trans": float(t_a.mean()), "anchor_rot_deg": float(r_a.mean())})
+    if boot is not None and boot.depth_ref is not None and boot.w_depth_scale > 0:
+        # the one scale of all depths, as a log: the mean over the batch's frames of their mean
+        # log depth against their references
+        drift = (torch.log(depths[0]).reshape(B * 3, -1).mean(dim=1)
+                 - boot.depth_ref.to(depths[0].dtype).reshape(-1)).mean()
+        boot_parts["L_scale"] = drift.square()
+        boot_diag["scale_drift"] = float(drift.detach())
     K_t, K_s = flat(K[:, t_idx]), flat(K[:, s_idx])
     I_t, I_s = flat(images[:, t_idx]), flat(images[:, s_idx])
 
@@ -555,6 +571,8 @@ def _triplet_loss_fp32(
         total = total + boot.w_consistency * boot.w_direction * boot_parts["L_dir"]
     if "L_anchor" in boot_parts and boot is not None:
         total = total + boot.w_anchor * boot_parts["L_anchor"]
+    if "L_scale" in boot_parts and boot is not None:
+        total = total + boot.w_depth_scale * boot_parts["L_scale"]
     parts.update({"L_p": L_p, "L_s": L_s, "L_c": L_c, **boot_parts})
     for i, (t, s) in enumerate(pairs):
         parts[f"L_p/pair_{t}{s}"] = lp_pairs[i]

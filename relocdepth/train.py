@@ -163,6 +163,11 @@ class TrainConfig:
     # per frame the median centre and the mean orientation, the older builds scaled into the
     # newest's units); until there are that many, the newest alone (1: the newest build, always).
     anchor_combine: int = 1
+    # "vo": hold the depth network's scale where it was at the first anchors' build, with this
+    # weight (relocdepth.method.Bootstrap.w_depth_scale; 0: free, the paper's). Monocular training
+    # leaves the scale of all depths free, and the anchors are rebuilt in whatever units it has
+    # drifted to, so that the DSC network's targets change scale from build to build.
+    w_depth_scale: float = 0.0
     # An exponential moving average of the weights (not in the paper), kept beside them with this
     # decay per step and written into every checkpoint, whose networks it then is for localisation
     # and evaluation (0: none). Training itself (the anchors too) uses the raw weights, so a run
@@ -254,6 +259,11 @@ class TrainConfig:
             raise UserError(f"--anchor-combine must be a number of builds >= 1, not {self.anchor_combine}")
         if self.anchor_combine > 1 and self.anchor != "vo":
             raise UserError("--anchor-combine needs --anchor vo (it combines the odometry's builds)")
+        if not (self.w_depth_scale >= 0 and math.isfinite(self.w_depth_scale)):
+            raise UserError(f"--w-depth-scale must be a number >= 0, not {self.w_depth_scale}")
+        if self.w_depth_scale and self.anchor != "vo":
+            raise UserError("--w-depth-scale needs --anchor vo (it holds the depth's scale where the first "
+                            "anchors were built)")
         if self.bootstrap_steps < 0 or self.bootstrap_fade_steps < 0 or self.w_bootstrap < 0:
             raise UserError("--bootstrap-steps, --bootstrap-fade-steps and --w-bootstrap must be >= 0")
         if not (self.w_direction >= 0 and math.isfinite(self.w_direction)):
@@ -441,6 +451,9 @@ class RunState:
     anchors_step: int | None = None  # the step they were built at (or a build was not used)
     # the last builds as built, oldest first (TrainConfig.anchor_combine of them at most): (N, 4, 4) tensors
     anchor_builds: list = field(default_factory=list)
+    # (N,) float32 tensor: each training frame's mean log depth at the first anchors' build, which
+    # TrainConfig.w_depth_scale holds the depth's scale to (None: not yet, or not held)
+    depth_ref: Any = None
 
 
 @dataclass
@@ -725,6 +738,7 @@ def _restore(ck: dict[str, Any], nets: Any, optimizer: Any, scaler: Any, state: 
     if ck.get("anchors"):
         state.anchors, state.anchors_step = ck["anchors"]["T_wc"], int(ck["anchors"]["step"])
         state.anchor_builds = list(ck["anchors"].get("builds") or [state.anchors])
+        state.depth_ref = ck["anchors"].get("depth_ref")
 
 
 def checkpoint(tr: Trainer, state: RunState) -> None:
@@ -751,7 +765,8 @@ def checkpoint(tr: Trainer, state: RunState) -> None:
         "scaler": tr.scaler.state_dict() if tr.scaler.is_enabled() else None,
         "sampler": {"epoch": state.epoch, "position": state.position}, "rng": _rng_state(),
         "anchors": None if state.anchors is None else {"T_wc": state.anchors, "step": state.anchors_step,
-                                                       "builds": state.anchor_builds},
+                                                       "builds": state.anchor_builds,
+                                                       "depth_ref": state.depth_ref},
         "ema": None if tr.ema is None else tr.ema.state_dict(),
     }, keep_last=tr.cfg.keep_last)
     state.last_checkpoint = str(path)
@@ -781,10 +796,11 @@ def sample(tr: Trainer, state: RunState, batch: dict[str, Any]) -> dict[str, Any
     }
 
 
-def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0,
-                   anchors: Any = None) -> tuple[Any, dict[str, Any], dict[str, float]]:
+def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0, anchors: Any = None,
+                   depth_ref: Any = None) -> tuple[Any, dict[str, Any], dict[str, float]]:
     """Named step: both networks on the triplets, the paper's loss (plus the bootstrap's, while it
-    lasts, with the DSC's ``anchors (N, 4, 4)`` when given), its parts and diagnostics."""
+    lasts, with the DSC's ``anchors (N, 4, 4)`` when given, and the depth's scale held to the
+    frames' ``depth_ref (N,)`` with ``TrainConfig.w_depth_scale``), its parts and diagnostics."""
     import torch
 
     from relocdepth.method import Bootstrap
@@ -796,7 +812,9 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0,
         T_wc = None if tr.gt_poses is None else tr.gt_poses[b["index"]].to(tr.device)
         two_view = (b["two_view_T"], b["two_view_points"], b["two_view_ok"]) if "two_view_T" in b else None
         T_anchor = anchors[b["index"]].to(tr.device) if w_anchor > 0 else None
-        boot = Bootstrap(warps, w, T_wc, two_view, T_anchor, w_anchor, tr.cfg.w_direction)
+        held = depth_ref is not None and tr.cfg.w_depth_scale > 0
+        boot = Bootstrap(warps, w, T_wc, two_view, T_anchor, w_anchor, tr.cfg.w_direction,
+                         depth_ref[b["index"]].to(tr.device) if held else None, tr.cfg.w_depth_scale)
     depth = None
     if tr.gt_depths is not None:
         W, H = tr.cfg.size
@@ -828,8 +846,14 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
                     f"(under {tr.cfg.anchor_turn_agreement:.0%})")
     else:
         align = tr.cfg.anchor_align_step is not None and state.step >= tr.cfg.anchor_align_step
-        a = A.build_anchors(tr.frames, lambda _ix, ims: A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth,
-                                                                        m.max_depth), tr.cfg.size,
+        log_depth: dict[int, float] = {}  # each frame's mean log depth in this build
+
+        def depth_of(ix: list[int], ims: list[Any]) -> list[Any]:
+            maps = A.network_depth(tr.nets.depth, ims, tr.device, m.min_depth, m.max_depth)
+            log_depth.update({i: float(np.log(d).mean()) for i, d in zip(ix, maps)})
+            return maps
+
+        a = A.build_anchors(tr.frames, depth_of, tr.cfg.size,
                             VOConfig(align=align, bundle=tr.cfg.anchor_bundle, pnp_below=tr.cfg.anchor_pnp_below,
                                      bundle_cfg=_anchor_bundle_config(tr.cfg)),
                             track_width=tr.cfg.anchor_track_width)
@@ -861,6 +885,9 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         else:
             state.anchors = torch.from_numpy(a.T_wc)
             combined = 1
+        if tr.cfg.w_depth_scale and state.depth_ref is None:  # the units of the first build used, for good
+            state.depth_ref = torch.tensor([log_depth[i] for i in range(len(a.T_wc))], dtype=torch.float32)
+            how += ", the depth's scale held from here"
         reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
         log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
@@ -1007,7 +1034,7 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
             else:
                 if anchor_due(cfg, state.step, state.anchors_step):
                     build_anchors(tr, state)
-                loss, parts, diag = forward_losses(tr, b, state.step, state.anchors)
+                loss, parts, diag = forward_losses(tr, b, state.step, state.anchors, state.depth_ref)
                 stepped = optimizer_step(tr, state, loss)
                 if not stepped and state.nonfinite_streak >= cfg.max_nonfinite:
                     state.stop = "diverged"

@@ -635,3 +635,91 @@ def test_trainer_builds_linked_anchors_from_its_own_networks(synth_shards: Path,
     assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
     T = ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["T_wc"]
     assert T.shape == (48, 4, 4) and torch.isfinite(T).all() and not torch.allclose(T[0], torch.eye(4))
+
+
+def test_depth_scale_term_holds_only_the_one_scale_of_all_depths() -> None:
+    """Depth maps of three frames at their references: L_scale = 0; all of them s times deeper:
+    (log s)^2, ``scale_drift`` log s, the total the paper's plus w times it; each frame's depth
+    reshaped with its mean log kept (half its pixels twice as deep, half half as deep): 0 again.
+    Its gradient on a log scale of all depths is 2 log s (and a finite difference agrees); it
+    reaches the depth network only."""
+    torch.manual_seed(0)
+    nets = Networks(ModelConfig())
+    imgs = torch.rand(1, 3, 3, H, W)
+    K = torch.tensor([[60.0, 0, (W - 1) / 2], [0, 60.0, (H - 1) / 2], [0, 0, 1]]).expand(1, 3, 3, 3).clone()
+    cfg = MethodConfig(photometric_pixels="all")
+    depth = 1.0 + torch.rand(1, 3, 1, H, W) * torch.tensor([1.0, 2.0, 3.0]).reshape(1, 3, 1, 1, 1)
+    ref = torch.log(depth).reshape(1, 3, -1).mean(-1)
+
+    def held(d: torch.Tensor, w: float = 1.0):
+        return triplet_loss(nets, imgs, imgs, K, cfg, Bootstrap(False, 0.0, depth_ref=ref, w_depth_scale=w),
+                            depth_override=d)
+
+    _, parts, diag = held(depth)
+    assert float(parts["L_scale"]) < 1e-12 and abs(diag["scale_drift"]) < 1e-6
+    total, parts, diag = held(depth * 1.3, w=2.0)
+    assert float(parts["L_scale"]) == pytest.approx(math.log(1.3) ** 2, rel=1e-4)
+    assert diag["scale_drift"] == pytest.approx(math.log(1.3), rel=1e-4)
+    paper, _, _ = triplet_loss(nets, imgs, imgs, K, cfg, depth_override=depth * 1.3)
+    assert float(total.detach()) == pytest.approx(float(paper.detach()) + 2.0 * float(parts["L_scale"]), rel=1e-5)
+    checker = torch.ones(H, W)
+    checker[:, : W // 2] = 2.0
+    checker[:, W // 2:] = 0.5
+    _, parts, _ = held(depth * checker)
+    assert float(parts["L_scale"]) < 1e-10
+
+    def l_scale(a: torch.Tensor) -> torch.Tensor:
+        return held(depth * torch.exp(a))[1]["L_scale"]
+
+    a = torch.tensor(0.2, dtype=torch.float64, requires_grad=True)
+    l_scale(a.float()).backward()
+    eps = 1e-3
+    fd = (float(l_scale(torch.tensor(0.2 + eps))) - float(l_scale(torch.tensor(0.2 - eps)))) / (2 * eps)
+    assert float(a.grad) == pytest.approx(0.4, rel=1e-3) and fd == pytest.approx(0.4, rel=1e-2)
+    nets.zero_grad()
+    _, parts, _ = triplet_loss(nets, imgs, imgs, K, cfg,
+                               Bootstrap(False, 0.0, depth_ref=ref + 0.5, w_depth_scale=1.0))
+    parts["L_scale"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in nets.depth.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in nets.dsc.parameters())
+
+
+def test_trainer_holds_the_depth_scale_where_the_first_anchors_were_built(synth_shards: Path,
+                                                                        tmp_path: Path) -> None:
+    """``w_depth_scale``, anchors rebuilt every step: the references are the frames' mean log
+    depth from the network as it was at the first build (recomputed here from the checkpoint
+    before it), the same after every rebuild and after a resume; the steps after the first build
+    log ``L_scale`` and ``scale_drift``, the step before neither; without ``--anchor vo`` or
+    below 0 the option is one error."""
+    from relocdepth import checkpoint as ckpt_io
+    from relocdepth.anchors import network_depth, sequences_of
+    from relocdepth.data import ImageFrames, scale_and_crop
+    from relocdepth.train import TrainConfig, train
+
+    run = tmp_path / "run"
+    train(synth_shards, run, _cfg(max_steps=3, anchor_every=1, w_depth_scale=1.0, checkpoint_every=1, keep_last=5))
+    log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+    assert [d["step"] for d in log if d.get("event") == "anchors"] == [1, 2]
+    steps = [d for d in log if "loss" in d]
+    assert "L_scale" not in steps[0]["parts"] and "scale_drift" not in steps[0]["diagnostics"]
+    assert all("L_scale" in d["parts"] and math.isfinite(d["diagnostics"]["scale_drift"]) for d in steps[1:])
+    cks = {c["meta"]["step"]: c for c in map(ckpt_io.load_checkpoint, ckpt_io.list_checkpoints(run))}
+    ref = cks[2]["anchors"]["depth_ref"]
+    assert torch.equal(cks[3]["anchors"]["depth_ref"], ref)  # not moved by the rebuild at step 2
+    cfg = _cfg()
+    nets = Networks(cfg.model)
+    nets.load_state_dict(cks[1]["model"])  # the weights the first build saw
+    frames = ImageFrames.open(synth_shards)
+    W_, H_ = cfg.size
+    want = torch.zeros(len(frames.frames))
+    for ix in sequences_of(frames):
+        ims = [scale_and_crop(frames.read_image(i), frames.frames[i].intrinsics, W_, H_, 1.0, 0.0, 0.0)[0] for i in ix]
+        maps = network_depth(nets.depth, ims, torch.device("cpu"), cfg.method.min_depth, cfg.method.max_depth)
+        want[ix] = torch.tensor([float(np.log(d).mean()) for d in maps])
+    assert ref.shape == (len(frames.frames),) and torch.allclose(ref, want, atol=1e-5)
+    train(synth_shards, run, _cfg(max_steps=4, anchor_every=1, w_depth_scale=1.0, resume=True))
+    assert torch.equal(ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["depth_ref"], ref)
+    with pytest.raises(UserError, match="--w-depth-scale needs --anchor vo"):
+        TrainConfig.from_dict({"w_depth_scale": 1.0})
+    with pytest.raises(UserError, match="--w-depth-scale must be a number >= 0"):
+        _cfg(w_depth_scale=-1.0)
