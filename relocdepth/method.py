@@ -84,6 +84,11 @@ class MethodConfig:
     # With w_novel_view: whether L_nv also holds the DSC network's pose of the new view (L_nv_pose);
     # False: the depth network's term alone (L_nv_depth), which needs no DSC network.
     novel_view_pose: bool = True
+    # With w_novel_view: L_nv_depth teaches the new view from the frame and not the frame from it:
+    # the frame's depth takes the term's gradient only through its scale (its mean log over the
+    # pixels the new view shows), which keeps the term unchanged by a scale of all depths, and not
+    # through its shape, which the paper's terms alone then teach. False: through both.
+    novel_view_one_way: bool = False
     # With w_novel_view: the term in the first N training steps only (the trainer leaves it out from
     # step N on); 0: in every step.
     novel_view_steps: int = 0
@@ -323,7 +328,8 @@ def novel_view_loss(
     depth on the new view over its depth there, that is the frame's depth carried into the new view:
     ``D_new(p') / (D(p) (z(p') / D(p)))``, ``p`` the frame's pixel that ``p'`` shows, the ratio
     ``z / D`` the move's, detached; so it is unchanged by a scale of all depths, which it cannot
-    push: the frame's depth has its gradient too) and ``L_nv_pose`` (mean over cells of
+    push: the frame's depth has its gradient too, with ``cfg.novel_view_one_way`` only through its
+    mean log over the valid pixels) and ``L_nv_pose`` (mean over cells of
     :func:`relative_pose_consistency` of the DSC's cell poses of the new view, on that depth, with
     the frame's pose moved back; translations relative to the median depth); ``diagnostics``:
     ``nv_depth_ratio`` (median of that depth ratio: under 1, the network places the new view's
@@ -365,7 +371,13 @@ def novel_view_loss(
         depth_new = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
     with torch.autocast(inputs.device.type, enabled=False):
         carried = F.grid_sample(depth_grad, grid, mode="bilinear", padding_mode="border", align_corners=True)
-        log_ratio = torch.log(depth_new) - torch.log(carried * move_ratio)
+        log_target = torch.log(carried * move_ratio)
+        if cfg.novel_view_one_way:
+            # the same value; the gradient reaches the frame's depth through its mean log alone
+            log_carried = torch.log(carried)
+            mean_log = (log_carried * m).sum(dim=(1, 2, 3), keepdim=True) / m.sum(dim=(1, 2, 3), keepdim=True).clamp(min=1)
+            log_target = log_target.detach() + (mean_log - mean_log.detach())
+        log_ratio = torch.log(depth_new) - log_target
         n_valid = m.sum().clamp(min=1)
         l_depth = (log_ratio.abs() * m).sum() / n_valid
         with torch.no_grad():

@@ -248,6 +248,44 @@ def test_novel_view_forward_draws_moves_both_ways() -> None:
         assert abs(moves.mean() - (lo + hi) / 2) < 0.03
 
 
+def test_novel_view_one_way_moves_the_frame_only_by_its_scale() -> None:
+    """``novel_view_one_way``: the same value of L_nv_depth, the same derivative along a scale of the
+    frame's depth, and a gradient on the frame's depth that is one signed field (its mean log moves,
+    not its shape) where both ways it pulls the frame's pixels opposite ways where the network
+    places parts of the new view too near and others too far; the new view's gradient is unchanged."""
+    back = 0.2
+    gen = torch.Generator().manual_seed(4)
+    inputs = torch.rand(1, 3, H, W, generator=gen)
+    # a wall 2 m away with a bump: a frame depth that is not flat
+    u = torch.linspace(-1, 1, W)[None, None, None, :]
+    frame = 2.0 * torch.exp(0.2 * torch.cos(3 * u) * torch.ones(1, 1, H, 1))
+    med = frame.reshape(-1).median()
+    _, z, valid, _ = geo.moved_view(inputs, frame, torch.tensor([[0.0, 0.0, -back * float(med)]]), _K())
+    # the network places the new view's left third 30 % too far and the rest 10 % too near
+    bump = torch.where(u < -0.3, torch.tensor(0.3), torch.tensor(-0.1))
+    results = {}
+    for one_way in (False, True):
+        cfg = MethodConfig(w_novel_view=1.0, novel_view_back=0.25, novel_view_pose=False, use_dsc=False,
+                           novel_view_one_way=one_way)
+        log_frame = torch.log(frame).clone().requires_grad_()
+        new = _disp_of(z * torch.exp(bump), cfg).clone().requires_grad_()
+        net = SimpleNamespace(depth=lambda x, new=new: [new], dsc=None)
+        b = 1.0 / cfg.max_depth
+        disp = (1.0 / torch.exp(log_frame) - b) / (1.0 / cfg.min_depth - b)
+        parts, _ = novel_view_loss(net, inputs, disp, None, _K(), cfg, back=torch.tensor([back]))
+        parts["L_nv_depth"].backward()
+        results[one_way] = (float(parts["L_nv_depth"].detach()), log_frame.grad[0, 0].clone(), new.grad.clone())
+    (v_both, g_both, n_both), (v_one, g_one, n_one) = results[False], results[True]
+    assert v_one == pytest.approx(v_both, rel=1e-6) and v_both > 0.1
+    assert torch.allclose(n_one, n_both, atol=1e-7) and float(n_both.abs().sum()) > 0
+    # along a scale of the frame's depth both move the loss alike
+    assert float(g_one.sum()) == pytest.approx(float(g_both.sum()), rel=1e-4) and abs(float(g_both.sum())) > 1e-3
+    # both ways the frame is pulled opposite ways in the two parts; one way, all one sign
+    assert float(g_both.max()) > 1e-6 and float(g_both.min()) < -1e-6
+    assert float(g_one.max()) <= 1e-9 or float(g_one.min()) >= -1e-9
+    assert float(g_one.abs().sum()) > 0
+
+
 def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_path) -> None:
     from relocdepth.cli.main import app
     from relocdepth.train import TrainConfig
@@ -257,6 +295,7 @@ def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_pat
     assert cfg.method.w_novel_view == 0.5 and cfg.method.novel_view_back == 0.3
     assert cfg.method.novel_view_forward == 0.2
     assert cfg.method.novel_view_pose and not TrainConfig.from_dict({"novel_view_pose": False}).method.novel_view_pose
+    assert not cfg.method.novel_view_one_way and TrainConfig.from_dict({"novel_view_one_way": True}).method.novel_view_one_way
     run = tmp_path / "run"
     for args, message in ((["--w-novel-view", "0.5", "--no-dsc"], "w_novel_view needs the DSC network"),
                           (["--novel-view-back", "2"], "novel_view_back must be in (0, 1]"),
