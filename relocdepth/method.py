@@ -375,7 +375,8 @@ def novel_view_loss(
         if cfg.novel_view_one_way:
             # the same value; the gradient reaches the frame's depth through its mean log alone
             log_carried = torch.log(carried)
-            mean_log = (log_carried * m).sum(dim=(1, 2, 3), keepdim=True) / m.sum(dim=(1, 2, 3), keepdim=True).clamp(min=1)
+            n_image = m.sum(dim=(1, 2, 3), keepdim=True).clamp(min=1)
+            mean_log = (log_carried * m).sum(dim=(1, 2, 3), keepdim=True) / n_image
             log_target = log_target.detach() + (mean_log - mean_log.detach())
         log_ratio = torch.log(depth_new) - log_target
         n_valid = m.sum().clamp(min=1)

@@ -270,8 +270,7 @@ def test_novel_view_one_way_moves_the_frame_only_by_its_scale() -> None:
         log_frame = torch.log(frame).clone().requires_grad_()
         new = _disp_of(z * torch.exp(bump), cfg).clone().requires_grad_()
         net = SimpleNamespace(depth=lambda x, new=new: [new], dsc=None)
-        b = 1.0 / cfg.max_depth
-        disp = (1.0 / torch.exp(log_frame) - b) / (1.0 / cfg.min_depth - b)
+        disp = _disp_of(torch.exp(log_frame), cfg)
         parts, _ = novel_view_loss(net, inputs, disp, None, _K(), cfg, back=torch.tensor([back]))
         parts["L_nv_depth"].backward()
         results[one_way] = (float(parts["L_nv_depth"].detach()), log_frame.grad[0, 0].clone(), new.grad.clone())
