@@ -89,6 +89,10 @@ class MethodConfig:
     # pixels the new view shows), which keeps the term unchanged by a scale of all depths, and not
     # through its shape, which the paper's terms alone then teach. False: through both.
     novel_view_one_way: bool = False
+    # With w_novel_view: the new views teach the depth network's decoder alone (its encoder runs on
+    # them without gradient), so that the encoder's features of real images are shaped by real
+    # images only. False: both.
+    novel_view_decoder_only: bool = False
     # With w_novel_view: the term in the first N training steps only (the trainer leaves it out from
     # step N on); 0: in every step.
     novel_view_steps: int = 0
@@ -329,7 +333,8 @@ def novel_view_loss(
     ``D_new(p') / (D(p) (z(p') / D(p)))``, ``p`` the frame's pixel that ``p'`` shows, the ratio
     ``z / D`` the move's, detached; so it is unchanged by a scale of all depths, which it cannot
     push: the frame's depth has its gradient too, with ``cfg.novel_view_one_way`` only through its
-    mean log over the valid pixels) and ``L_nv_pose`` (mean over cells of
+    mean log over the valid pixels; with ``cfg.novel_view_decoder_only`` the new view's gradient
+    reaches the depth network's decoder and not its encoder) and ``L_nv_pose`` (mean over cells of
     :func:`relative_pose_consistency` of the DSC's cell poses of the new view, on that depth, with
     the frame's pose moved back; translations relative to the median depth); ``diagnostics``:
     ``nv_depth_ratio`` (median of that depth ratio: under 1, the network places the new view's
@@ -368,7 +373,13 @@ def novel_view_loss(
             T_new = T_src @ shift
     x = image.to(inputs.dtype)
     with _running_statistics_kept(nets.depth):
-        depth_new = disp_to_depth(nets.depth(x)[0].to(dt), cfg.min_depth, cfg.max_depth)
+        if cfg.novel_view_decoder_only:
+            with torch.no_grad():
+                features = nets.depth.encoder(x)
+            disp_new = nets.depth.decoder(features)[0]
+        else:
+            disp_new = nets.depth(x)[0]
+        depth_new = disp_to_depth(disp_new.to(dt), cfg.min_depth, cfg.max_depth)
     with torch.autocast(inputs.device.type, enabled=False):
         carried = F.grid_sample(depth_grad, grid, mode="bilinear", padding_mode="border", align_corners=True)
         log_target = torch.log(carried * move_ratio)

@@ -285,6 +285,33 @@ def test_novel_view_one_way_moves_the_frame_only_by_its_scale() -> None:
     assert float(g_one.abs().sum()) > 0
 
 
+def test_novel_view_decoder_only_keeps_the_encoder_out_of_the_new_views() -> None:
+    """``novel_view_decoder_only``: the same value of L_nv_depth; the new views' gradient reaches
+    the depth network's decoder, with the same values as over the whole network, and not its
+    encoder, which the whole network's does reach."""
+    x = torch.rand(2, 3, H, W, generator=torch.Generator().manual_seed(6))
+    grads = {}
+    for decoder_only in (False, True):
+        torch.manual_seed(0)
+        nets = build_networks(ModelConfig())
+        nets.train()
+        disp = nets.depth(x)[0].detach()  # the frame's own depth out of it: the new views' path alone
+        cfg = MethodConfig(w_novel_view=1.0, novel_view_pose=False, novel_view_decoder_only=decoder_only)
+        parts, _ = novel_view_loss(nets, x, disp, None, _K(2), cfg, back=torch.tensor([0.2, 0.1]))
+        parts["L_nv_depth"].backward()
+        grads[decoder_only] = (float(parts["L_nv_depth"].detach()),
+                               [p.grad for p in nets.depth.encoder.parameters()],
+                               [p.grad for p in nets.depth.decoder.parameters()])
+    (v_all, enc_all, dec_all), (v_dec, enc_dec, dec_dec) = grads[False], grads[True]
+    assert v_dec == pytest.approx(v_all, rel=1e-6) and v_all > 0
+    assert all(g is None for g in enc_dec)
+    assert sum(float(g.abs().sum()) for g in enc_all if g is not None) > 0
+    # (the coarser scales' output layers take no part: no gradient either way)
+    assert all((a is None and b is None) or torch.allclose(a, b, rtol=1e-4, atol=1e-7)
+               for a, b in zip(dec_all, dec_dec))
+    assert sum(float(g.abs().sum()) for g in dec_dec if g is not None) > 0
+
+
 def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_path) -> None:
     from relocdepth.cli.main import app
     from relocdepth.train import TrainConfig
@@ -295,6 +322,8 @@ def test_novel_view_options_reach_the_config_and_bad_values_are_one_line(tmp_pat
     assert cfg.method.novel_view_forward == 0.2
     assert cfg.method.novel_view_pose and not TrainConfig.from_dict({"novel_view_pose": False}).method.novel_view_pose
     assert not cfg.method.novel_view_one_way and TrainConfig.from_dict({"novel_view_one_way": True}).method.novel_view_one_way
+    assert not cfg.method.novel_view_decoder_only
+    assert TrainConfig.from_dict({"novel_view_decoder_only": True}).method.novel_view_decoder_only
     run = tmp_path / "run"
     for args, message in ((["--w-novel-view", "0.5", "--no-dsc"], "w_novel_view needs the DSC network"),
                           (["--novel-view-back", "2"], "novel_view_back must be in (0, 1]"),
