@@ -213,3 +213,26 @@ def test_every_recipe_is_a_valid_config_that_says_what_it_sets() -> None:
         for key, value in TrainConfig.values_of(options).items():
             assert values[key] == value, (name, key)
     assert TrainConfig.from_values(TrainConfig.values_of(recipe("cpu-linked"))).anchor == "linked"
+
+
+def test_a_recipes_scale_line_is_turned_off_from_the_command_line(synth_shards: Path, tmp_path: Path) -> None:
+    """``--anchor-bundle-scale-degree none`` over ``--recipe cpu-anchored`` trains without the
+    recipe's line and keeps the rest of the recipe; a degree given is taken; text that is neither
+    is a one-line usage error."""
+    from relocdepth.cli.main import app
+
+    common = ["--size", "64x64", "--batch-size", "1", "--pretrained", "none", "--workers", "0", "--no-progress",
+              "--recipe", "cpu-anchored", "--max-steps", "1"]
+    for given, degree in (("none", None), ("None", None), ("2", 2)):
+        run = tmp_path / f"run-{given}"
+        r = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(run), *common,
+                                     "--anchor-bundle-scale-degree", given])
+        assert r.exit_code == 0, r.output
+        saved = TrainConfig.from_dict(ckpt_io.load_checkpoint(ckpt_io.latest_checkpoint(run))["meta"]["train"])
+        assert saved.anchor_bundle_scale_degree == degree
+        assert (saved.anchor, saved.anchor_bundle, saved.anchor_combine) == ("vo", True, 3)  # the recipe's
+    assert TrainConfig.from_values(TrainConfig.values_of(recipe("cpu-anchored"))).anchor_bundle_scale_degree == 1
+    r = CliRunner().invoke(app, ["train", str(synth_shards), "-o", str(tmp_path / "bad"), *common,
+                                 "--anchor-bundle-scale-degree", "one"])
+    assert r.exit_code == 2 and "--anchor-bundle-scale-degree must be a whole number or none, not 'one'" in r.output
+    assert not (tmp_path / "bad").exists() or ckpt_io.latest_checkpoint(tmp_path / "bad") is None
