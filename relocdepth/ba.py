@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -400,6 +401,25 @@ def rotation_prior_jacobians(M_T: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.stack([-M_T @ R[1:] @ np.swapaxes(R[:-1], 1, 2), M_T], axis=1)
 
 
+def schur_product(E: np.ndarray, B: np.ndarray, cam: np.ndarray, pt: np.ndarray, n_cam: int) -> Any:
+    """``E B E^T`` as a sparse ``(6 n_cam, 6 n_cam)`` matrix, for ``E`` given by its blocks ``E (M, 6,
+    3)`` at block row ``cam[m]`` and block column ``pt[m]`` (a camera's block of an observation
+    of a point; blocks at the same place add) and ``B`` block-diagonal, its blocks ``B (n_pt, 3,
+    3)``: the points' part of the cameras' reduced system. Multiplied block by block (scipy's
+    BSR): the same sum as the scalar sparse product, about twice as fast where every point is
+    seen from dozens of cameras (benchmarks/bench_ba.py)."""
+    import scipy.sparse as sp
+
+    n_pt = len(B)
+    F = np.einsum("mij,mjk->mik", E, B[pt])  # E_m B_p
+    by_cam, by_pt = np.lexsort((pt, cam)), np.lexsort((cam, pt))
+    left = sp.bsr_matrix((F[by_cam], pt[by_cam], np.searchsorted(cam[by_cam], np.arange(n_cam + 1))),
+                         shape=(6 * n_cam, 3 * n_pt))
+    right = sp.bsr_matrix((np.swapaxes(E, 1, 2)[by_pt], cam[by_pt], np.searchsorted(pt[by_pt], np.arange(n_pt + 1))),
+                          shape=(3 * n_pt, 6 * n_cam))
+    return (left @ right).tocsr()
+
+
 def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, P: np.ndarray, free: np.ndarray, o_frame: np.ndarray,
                          o_pt: np.ndarray, o_ray: np.ndarray, f: np.ndarray, R_prior: np.ndarray | None,
                          cfg: BAConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
@@ -462,7 +482,8 @@ def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, P: np.ndarray, free: np.n
         np.add.at(Hcc, oc[mv], np.einsum("mki,m,mkj->mij", Jc, w[mv], Jc))
         gc = np.zeros((n_cam, 6))
         np.add.at(gc, oc[mv], np.einsum("mki,mk->mi", Jc, we[mv]))
-        E = blocks(np.einsum("mki,m,mkj->mij", Jc, w[mv], Jp[mv]), oc[mv], o_pt[mv], (6 * n_cam, 3 * n_pt))
+        Eb = np.einsum("mki,m,mkj->mij", Jc, w[mv], Jp[mv])
+        E = blocks(Eb, oc[mv], o_pt[mv], (6 * n_cam, 3 * n_pt))
         H_prior, g_prior = sp.csr_matrix((6 * n_cam, 6 * n_cam)), np.zeros(6 * n_cam)
         if meas_T is not None:
             r = prior_residuals(R)
@@ -479,9 +500,11 @@ def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, P: np.ndarray, free: np.n
         while lam <= 1e6:
             Hpp_d = Hpp + (lam * np.diagonal(Hpp, axis1=1, axis2=2)[:, None, :] + 1e-9) * np.eye(3)
             Hcc_d = Hcc + (lam * np.diagonal(Hcc, axis1=1, axis2=2)[:, None, :] + 1e-6) * np.eye(6)
-            Binv = blocks(np.linalg.inv(Hpp_d), np.arange(n_pt), np.arange(n_pt), (3 * n_pt, 3 * n_pt))
+            Binv_b = np.linalg.inv(Hpp_d)
+            Binv = blocks(Binv_b, np.arange(n_pt), np.arange(n_pt), (3 * n_pt, 3 * n_pt))
             ar = np.arange(n_cam)
-            S = (blocks(Hcc_d, ar, ar, (6 * n_cam, 6 * n_cam)) - E @ Binv @ E.T + H_prior).tocsc()
+            S = (blocks(Hcc_d, ar, ar, (6 * n_cam, 6 * n_cam)) - schur_product(Eb, Binv_b, oc[mv], o_pt[mv], n_cam)
+                 + H_prior).tocsc()
             dc = spsolve(S, -gc.ravel() - g_prior + E @ (Binv @ gp.ravel()))
             dp = -(Binv @ (gp.ravel() + E.T @ dc))
             if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dp))):

@@ -17,6 +17,7 @@ from relocdepth.ba import (
     rescale_steps,
     rotation_prior_jacobians,
     rotvec_to_matrix,
+    schur_product,
     triangulate,
 )
 from relocdepth.eval_geometry import apply_sim3, rotation_angle_deg, umeyama
@@ -106,6 +107,25 @@ def test_rotation_prior_derivatives_match_finite_differences() -> None:
                 Rm = rotvec_to_matrix(w) @ R
                 r = matrix_to_rotvec(M_T[j:j + 1] @ Rm[j + 1:j + 2] @ Rm[j:j + 1].transpose(0, 2, 1))[0]
                 assert np.allclose(r / h, J[j, side, :, k], atol=1e-4)
+
+
+def test_the_reduced_systems_block_product_is_the_dense_one() -> None:
+    """``schur_product`` is ``E B E^T`` written out densely: observations in any order, two at one
+    (camera, point) place adding up, a camera that sees nothing with zero rows."""
+    rng = np.random.default_rng(3)
+    n_cam, n_pt, m = 5, 7, 40
+    cam, pt = rng.integers(0, n_cam - 1, m), rng.integers(0, n_pt, m)  # the last camera sees nothing
+    cam[1], pt[1] = cam[0], pt[0]  # two blocks at one place
+    E, B = rng.normal(size=(m, 6, 3)), rng.normal(size=(n_pt, 3, 3))
+    Ed, Bd = np.zeros((6 * n_cam, 3 * n_pt)), np.zeros((3 * n_pt, 3 * n_pt))
+    for k in range(m):
+        Ed[6 * cam[k]:6 * cam[k] + 6, 3 * pt[k]:3 * pt[k] + 3] += E[k]
+    for p in range(n_pt):
+        Bd[3 * p:3 * p + 3, 3 * p:3 * p + 3] = B[p]
+    S = schur_product(E, B, cam, pt, n_cam)
+    assert S.shape == (6 * n_cam, 6 * n_cam)
+    np.testing.assert_allclose(S.toarray(), Ed @ Bd @ Ed.T, rtol=1e-12, atol=1e-12)
+    assert not S.toarray()[-6:].any()
 
 
 def test_tracks_last_several_frames_and_follow_the_scene(rendered: dict) -> None:
