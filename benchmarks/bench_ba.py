@@ -42,17 +42,11 @@ def problem(n_cam: int, n_pt: int, length: int, seed: int = 0) -> tuple[np.ndarr
 
 
 def scalar_product(E: np.ndarray, B: np.ndarray, cam: np.ndarray, pt: np.ndarray, n_cam: int):
-    import scipy.sparse as sp
-
-    def blocks(values, rows, cols, size):
-        r, c = values.shape[1:]
-        ri = np.broadcast_to(r * rows[:, None, None] + np.arange(r)[None, :, None], values.shape)
-        ci = np.broadcast_to(c * cols[:, None, None] + np.arange(c)[None, None, :], values.shape)
-        return sp.csr_matrix((values.ravel(), (ri.ravel(), ci.ravel())), shape=size)
+    from relocdepth.ba import sparse_blocks
 
     n_pt = len(B)
-    Es = blocks(E, cam, pt, (6 * n_cam, 3 * n_pt))
-    Bs = blocks(B, np.arange(n_pt), np.arange(n_pt), (3 * n_pt, 3 * n_pt))
+    Es = sparse_blocks(E, cam, pt, (6 * n_cam, 3 * n_pt))
+    Bs = sparse_blocks(B, np.arange(n_pt), np.arange(n_pt), (3 * n_pt, 3 * n_pt))
     return Es @ Bs @ Es.T
 
 

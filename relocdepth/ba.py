@@ -401,6 +401,17 @@ def rotation_prior_jacobians(M_T: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.stack([-M_T @ R[1:] @ np.swapaxes(R[:-1], 1, 2), M_T], axis=1)
 
 
+def sparse_blocks(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, size: tuple[int, int]) -> Any:
+    """A CSR matrix of ``size`` from dense blocks ``values (B, r, c)`` placed at block rows ``rows``
+    and block columns ``cols`` (blocks at the same place add)."""
+    import scipy.sparse as sp
+
+    r, c = values.shape[1:]
+    ri = np.broadcast_to(r * rows[:, None, None] + np.arange(r)[None, :, None], values.shape)
+    ci = np.broadcast_to(c * cols[:, None, None] + np.arange(c)[None, None, :], values.shape)
+    return sp.csr_matrix((values.ravel(), (ri.ravel(), ci.ravel())), shape=size)
+
+
 def schur_product(E: np.ndarray, B: np.ndarray, cam: np.ndarray, pt: np.ndarray, n_cam: int) -> Any:
     """``E B E^T`` as a sparse ``(6 n_cam, 6 n_cam)`` matrix, for ``E`` given by its blocks ``E (M, 6,
     3)`` at block row ``cam[m]`` and block column ``pt[m]`` (a camera's block of an observation
@@ -458,13 +469,6 @@ def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, P: np.ndarray, free: np.n
         return float(np.sum(np.where(a <= k, 0.5 * a ** 2, k * (a - 0.5 * k)))
                      + 0.5 * np.sum(prior_residuals(R) ** 2))
 
-    def blocks(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, size: tuple[int, int]) -> sp.csr_matrix:
-        """A sparse matrix from dense blocks ``values (B, r, c)`` placed at block rows/columns."""
-        r, c = values.shape[1:]
-        ri = np.broadcast_to(r * rows[:, None, None] + np.arange(r)[None, :, None], values.shape)
-        ci = np.broadcast_to(c * cols[:, None, None] + np.arange(c)[None, None, :], values.shape)
-        return sp.csr_matrix((values.ravel(), (ri.ravel(), ci.ravel())), shape=size)
-
     e, Xc = errors(R, t, P)
     start = float(np.median(np.linalg.norm(e, axis=1)))
     current, lam = cost(e, R), 1e-3
@@ -483,7 +487,7 @@ def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, P: np.ndarray, free: np.n
         gc = np.zeros((n_cam, 6))
         np.add.at(gc, oc[mv], np.einsum("mki,mk->mi", Jc, we[mv]))
         Eb = np.einsum("mki,m,mkj->mij", Jc, w[mv], Jp[mv])
-        E = blocks(Eb, oc[mv], o_pt[mv], (6 * n_cam, 3 * n_pt))
+        E = sparse_blocks(Eb, oc[mv], o_pt[mv], (6 * n_cam, 3 * n_pt))
         H_prior, g_prior = sp.csr_matrix((6 * n_cam, 6 * n_cam)), np.zeros(6 * n_cam)
         if meas_T is not None:
             r = prior_residuals(R)
@@ -494,17 +498,17 @@ def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, P: np.ndarray, free: np.n
                 np.add.at(g_prior, (6 * c[ok, i])[:, None] + np.arange(3), np.einsum("nki,nk->ni", J[ok, i], r[ok]))
                 for k in range(2):
                     both = ok & (c[:, k] >= 0)
-                    H_prior = H_prior + blocks(np.einsum("nki,nkj->nij", J[both, i], J[both, k]),
-                                               2 * c[both, i], 2 * c[both, k], (6 * n_cam, 6 * n_cam))
+                    H_prior = H_prior + sparse_blocks(np.einsum("nki,nkj->nij", J[both, i], J[both, k]),
+                                                      2 * c[both, i], 2 * c[both, k], (6 * n_cam, 6 * n_cam))
         improved = 0.0
         while lam <= 1e6:
             Hpp_d = Hpp + (lam * np.diagonal(Hpp, axis1=1, axis2=2)[:, None, :] + 1e-9) * np.eye(3)
             Hcc_d = Hcc + (lam * np.diagonal(Hcc, axis1=1, axis2=2)[:, None, :] + 1e-6) * np.eye(6)
             Binv_b = np.linalg.inv(Hpp_d)
-            Binv = blocks(Binv_b, np.arange(n_pt), np.arange(n_pt), (3 * n_pt, 3 * n_pt))
+            Binv = sparse_blocks(Binv_b, np.arange(n_pt), np.arange(n_pt), (3 * n_pt, 3 * n_pt))
             ar = np.arange(n_cam)
-            S = (blocks(Hcc_d, ar, ar, (6 * n_cam, 6 * n_cam)) - schur_product(Eb, Binv_b, oc[mv], o_pt[mv], n_cam)
-                 + H_prior).tocsc()
+            S = (sparse_blocks(Hcc_d, ar, ar, (6 * n_cam, 6 * n_cam))
+                 - schur_product(Eb, Binv_b, oc[mv], o_pt[mv], n_cam) + H_prior).tocsc()
             dc = spsolve(S, -gc.ravel() - g_prior + E @ (Binv @ gp.ravel()))
             dp = -(Binv @ (gp.ravel() + E.T @ dc))
             if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dp))):
