@@ -126,6 +126,12 @@ class TrainConfig:
     anchor_turn_agreement: float = 0.65
     anchor_step: int = 150
     anchor_every: int = 0
+    # Let the rebuild interval grow with the run: after a build at step s the next comes
+    # max(anchor_every, anchor_every_growth * s) steps on (0: every anchor_every steps). Builds stay
+    # dense early, while the network changes fast, and their number grows with the logarithm of
+    # the steps, so that their share of the run's time does not grow with a scene's frames as
+    # fast as a fixed interval's does (a build's cost grows with the frames).
+    anchor_every_growth: float = 0.0
     w_anchor: float = 1.0
     # "vo": builds from this step on refine the odometry by direct alignment of each frame to the
     # previous one with the depth network's depth (relocdepth.vo.VOConfig.align; None: never). Worth
@@ -229,6 +235,10 @@ class TrainConfig:
             raise UserError("--anchor-hold needs an --anchor (it keeps the anchors' weight after the bootstrap)")
         if self.anchor_step < 0 or self.anchor_every < 0 or self.w_anchor < 0:
             raise UserError("--anchor-step, --anchor-every and --w-anchor must be >= 0")
+        if not (self.anchor_every_growth >= 0 and math.isfinite(self.anchor_every_growth)):
+            raise UserError(f"--anchor-every-growth must be a number >= 0, not {self.anchor_every_growth}")
+        if self.anchor_every_growth and not self.anchor_every:
+            raise UserError("--anchor-every-growth needs --anchor-every (it lets the rebuild interval grow)")
         if self.anchor_align_step is not None and self.anchor != "vo":
             raise UserError("--anchor-align-step needs --anchor vo (it refines the anchors' odometry)")
         if self.anchor_align_step is not None and self.anchor_align_step < 0:
@@ -417,7 +427,9 @@ def anchor_due(cfg: TrainConfig, step: int, built_at: int | None) -> bool:
         return False
     if built_at is None:
         return True
-    return cfg.anchor_every > 0 and step - built_at >= cfg.anchor_every
+    if cfg.anchor_every <= 0:
+        return False
+    return step - built_at >= max(cfg.anchor_every, math.floor(cfg.anchor_every_growth * built_at))
 
 
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
@@ -874,7 +886,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
                     weak, "no anchors yet" if state.anchors is None else "keeping the previous ones")
     used = not a.unlinked
     combined = 0  # builds the anchors were combined from (0: this one not used)
-    state.anchors_step = state.step  # also when not used: the next try comes anchor_every steps on
+    state.anchors_step = state.step  # also when not used: the next try is one interval on
     if used:
         k = tr.cfg.anchor_combine
         state.anchor_builds = ([*state.anchor_builds, torch.from_numpy(a.T_wc)])[-k:]

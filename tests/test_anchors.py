@@ -102,6 +102,24 @@ def test_anchor_schedule_and_options() -> None:
     held = dataclasses.replace(cfg, anchor_hold=True)  # kept after the fade, and still rebuilt
     assert [anchor_at(held, s) for s in (2, 3, 11, 14, 1000)] == [0.0, 2.0, 2.0, 2.0, 2.0]
     assert not anchor_due(held, 17, 13) and anchor_due(held, 18, 13) and anchor_due(held, 1000, 995)
+    # a growing interval: after a build at step s the next comes max(5, 0.25 s) steps on
+    grown = dataclasses.replace(held, anchor_every_growth=0.25)
+    assert not anchor_due(grown, 12, 8) and anchor_due(grown, 13, 8)  # 0.25 * 8 = 2 < 5
+    assert not anchor_due(grown, 124, 100) and anchor_due(grown, 125, 100)  # 25 steps on
+    built, at = [], None
+    for s in range(1, 2001):
+        if anchor_due(grown, s, at):
+            built.append(s)
+            at = s
+    assert built[:7] == [3, 8, 13, 18, 23, 28, 35] and built[-3:] == [1165, 1456, 1820]
+    assert len(built) == 25  # with a fixed interval of 5: 400
+    with pytest.raises(UserError, match="--anchor-every-growth needs --anchor-every"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
+                               "anchor_every_growth": 0.25})
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(UserError, match="--anchor-every-growth must be a number >= 0"):
+            TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
+                                   "anchor_every": 5, "anchor_every_growth": bad})
     with pytest.raises(UserError, match="needs a --bootstrap"):
         TrainConfig.from_dict({"anchor": "vo"})
     with pytest.raises(UserError, match="--anchor-hold needs an --anchor"):
