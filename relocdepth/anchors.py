@@ -77,6 +77,9 @@ class Anchors:
     # vo anchors refined by bundle adjustment (VOConfig.bundle): per sequence its tracks,
     # observations and median reprojection error before / after (None: not adjusted)
     bundled: list[dict] | None = None
+    # vo anchors: the frames the odometry ran on (all, or every stride-th of each sequence and its
+    # last; the others interpolated; None: not odometry)
+    odometry_frames: int | None = None
     pnp: int = 0  # vo anchors: the frames whose pair PnP measured (VOConfig.pnp_below)
 
 
@@ -116,25 +119,30 @@ DepthOf = Callable[[list[int], list[np.ndarray]], list[np.ndarray]]
 
 
 def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
-                  cfg: VOConfig | None = None, track_width: int = 0) -> Anchors:
+                  cfg: VOConfig | None = None, track_width: int = 0, stride: int = 1) -> Anchors:
     """World poses of every training frame from odometry at ``size`` (W, H: images resized, as the
     trainer's un-augmented input) with ``depth``'s maps (in the trainer: the depth network's,
     :func:`network_depth`). With ``track_width`` the odometry tracks the stored images resized to
     that width (:func:`relocdepth.refine.track_size`: at most theirs, their aspect, never below
     ``size``), the depth maps upsampled to them. A sequence registered by fewer than
     :data:`MIN_LINK_INLIERS` agreeing links is listed in ``unlinked``, and the anchors are not to
-    be used."""
+    be used. With ``stride`` > 1 the odometry runs on every stride-th frame of each sequence (and
+    its last), and the frames between take poses interpolated between theirs (:func:`in_between`);
+    ``depth`` is still asked for every frame."""
     from relocdepth.refine import track_size
 
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, not {stride}")
     t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
-    images, Ks = [], []
+    keep = [strided(len(ix), stride) for ix in seqs]
+    images, Ks, depths = [], [], []
     for ix in seqs:
         pairs = [scale_and_crop(frames.read_image(i), frames.frames[i].intrinsics, W, H, 1.0, 0.0, 0.0) for i in ix]
         images.append([p[0] for p in pairs])
         Ks.append(pairs[0][1].K())
-    depths = [depth(ix, im) for ix, im in zip(seqs, images)]
+        depths.append(depth(ix, images[-1]))
     stored = frames.frames[0].intrinsics
     track = tuple(track_size(stored.width, stored.height, (W, H), track_width))
     if track != (W, H):  # the stored images, read when asked (a long dataset's do not fit in memory)
@@ -142,15 +150,65 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
         Ks = [frames.frames[ix[0]].intrinsics.scaled(*track).K() for ix in seqs]
         depths = [_Upsampled(d, track) for d in depths]
     cfg = cfg or VOConfig()
-    w = world_trajectory(images, Ks, [d.__getitem__ for d in depths], cfg)
+    # each sequence's odometry on its kept frames, the frames between filled in; then the
+    # sequences registered into one world on all of their frames (as many links as without stride)
+    own = [world_trajectory([_Kept(im, kk)], [K], [_Kept(d, kk).__getitem__], cfg)
+           for im, K, d, kk in zip(images, Ks, depths, keep)]
+    T_seq = [in_between(w.world[0], kk, len(ix)) for w, kk, ix in zip(own, keep, seqs)]
+    regs, world = join_sequences(images, Ks, T_seq, [d.__getitem__ for d in depths], cfg)
     T = np.repeat(np.eye(4, dtype=np.float32)[None], len(frames), axis=0)
-    for ix, T_seq in zip(seqs, w.world):
-        T[ix] = T_seq.astype(np.float32)
-    unlinked = unlinked_sequences(w.regs)
-    return Anchors(T, sum(len(t.keyframes) for t in w.trajs), sum(len(t.lost) for t in w.trajs),
-                   [(r.inliers, r.links) for r in w.regs], time.perf_counter() - t0, unlinked=unlinked,
-                   aligned=w.aligned if cfg.align else None, track_size=track, bundled=w.bundled,
-                   pnp=sum(len(t.pnp) for t in w.trajs))
+    for ix, T_w in zip(seqs, world):
+        T[ix] = T_w.astype(np.float32)
+    trajs = [w.trajs[0] for w in own]
+    return Anchors(T, sum(len(t.keyframes) for t in trajs), sum(len(t.lost) for t in trajs),
+                   [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, unlinked=unlinked_sequences(regs),
+                   aligned=sum(w.aligned for w in own) if cfg.align else None, track_size=track,
+                   bundled=[b for w in own for b in w.bundled] if cfg.bundle else None,
+                   pnp=sum(len(t.pnp) for t in trajs), odometry_frames=sum(map(len, keep)))
+
+
+class _Kept:
+    """The items ``kept`` of a sequence (a list, or images read when asked), in order."""
+
+    def __init__(self, items: Any, kept: list[int]) -> None:
+        self.items, self.kept = items, kept
+
+    def __len__(self) -> int:
+        return len(self.kept)
+
+    def __getitem__(self, j: int) -> Any:
+        return self.items[self.kept[j]]
+
+    def __iter__(self) -> Iterator[Any]:
+        return (self.items[k] for k in self.kept)
+
+
+def strided(n: int, stride: int) -> list[int]:
+    """Every ``stride``-th of ``n`` frames in order, and the last (no frame after the last one kept)."""
+    kk = list(range(0, n, stride))
+    return kk if kk[-1] == n - 1 else [*kk, n - 1]
+
+
+def in_between(T_wc: np.ndarray, at: list[int], n: int) -> np.ndarray:
+    """Poses ``(n, 4, 4)`` of ``n`` frames in order from those of the frames ``at`` (increasing,
+    the first and the last among them; ``T_wc (len(at), 4, 4)``): a frame between two of them
+    moves along the straight line between their centres and turns about the axis between their
+    orientations (spherical interpolation), at its place between them in frames."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    T_wc = np.asarray(T_wc, np.float64)
+    at_ = np.asarray(at)
+    if at_[0] != 0 or at_[-1] != n - 1 or len(at_) != len(T_wc) or np.any(np.diff(at_) <= 0):
+        raise ValueError(f"poses at frames {list(at)} do not span {n} frames in order")
+    out = np.repeat(np.eye(4)[None], n, axis=0)
+    if len(at_) == 1:
+        out[0] = T_wc[0]
+        return out
+    j = np.arange(n)
+    out[:, :3, :3] = Slerp(at_, Rotation.from_matrix(T_wc[:, :3, :3]))(j).as_matrix()
+    out[:, :3, 3] = np.stack([np.interp(j, at_, T_wc[:, k, 3]) for k in range(3)], axis=1)
+    out[at_] = T_wc  # exact where built
+    return out
 
 
 def combine_builds(builds: list[np.ndarray]) -> np.ndarray:

@@ -169,6 +169,12 @@ class TrainConfig:
     # per frame the median centre and the mean orientation, the older builds scaled into the
     # newest's units); until there are that many, the newest alone (1: the newest build, always).
     anchor_combine: int = 1
+    # "vo": each build's odometry runs on every this-many-th frame of each sequence (and its last),
+    # the frames between taking poses interpolated between theirs; the sequences are registered
+    # on all frames (relocdepth.anchors.build_anchors). A build's bundle adjustment grows faster
+    # than the frames (its tracks grow longer); frames 1 cm apart (30 fps) give it little more
+    # than frames 3 cm apart (1: every frame).
+    anchor_stride: int = 1
     # "vo": hold the depth network's scale where it was at the first anchors' build, with this
     # weight (relocdepth.method.Bootstrap.w_depth_scale; 0: free, the paper's). Monocular training
     # leaves the scale of all depths free, and the anchors are rebuilt in whatever units it has
@@ -269,6 +275,10 @@ class TrainConfig:
             raise UserError(f"--anchor-combine must be a number of builds >= 1, not {self.anchor_combine}")
         if self.anchor_combine > 1 and self.anchor != "vo":
             raise UserError("--anchor-combine needs --anchor vo (it combines the odometry's builds)")
+        if self.anchor_stride < 1:
+            raise UserError(f"--anchor-stride must be a number of frames >= 1, not {self.anchor_stride}")
+        if self.anchor_stride > 1 and self.anchor != "vo":
+            raise UserError("--anchor-stride needs --anchor vo (it thins the odometry's frames)")
         if not (self.w_depth_scale >= 0 and math.isfinite(self.w_depth_scale)):
             raise UserError(f"--w-depth-scale must be a number >= 0, not {self.w_depth_scale}")
         if self.w_depth_scale and self.anchor != "vo":
@@ -868,7 +878,7 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
         a = A.build_anchors(tr.frames, depth_of, tr.cfg.size,
                             VOConfig(align=align, bundle=tr.cfg.anchor_bundle, pnp_below=tr.cfg.anchor_pnp_below,
                                      bundle_cfg=_anchor_bundle_config(tr.cfg)),
-                            track_width=tr.cfg.anchor_track_width)
+                            track_width=tr.cfg.anchor_track_width, stride=tr.cfg.anchor_stride)
         extra = "" if a.aligned is None else f", {a.aligned} frames aligned"
         if tr.cfg.anchor_pnp_below:
             extra += f", {a.pnp} by PnP"
@@ -878,7 +888,8 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
                 + (f", scale held along the path at {b['held'][0]:.2f}-{b['held'][1]:.2f}" if "held" in b else "")
                 for b in a.bundled)
         size = "x".join(map(str, a.track_size))
-        how = f"odometry of {len(a.T_wc)} frames at {size} ({a.keyframes} keyframes, {a.lost} lost{extra})"
+        every = "" if a.odometry_frames == len(a.T_wc) else f" (run on {a.odometry_frames}, the rest interpolated)"
+        how = f"odometry of {len(a.T_wc)} frames{every} at {size} ({a.keyframes} keyframes, {a.lost} lost{extra})"
     if a.unlinked:  # no consensus on where those sequences lie: such anchors would misplace them
         weak = ", ".join(f"{a.registration[k - 1][0]}/{a.registration[k - 1][1]}" for k in a.unlinked)
         log.warning("anchors at step %d not used: %d of %d sequences linked by fewer than %d agreeing links "
@@ -905,7 +916,8 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
     tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
                  registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
                  turn_measured=a.turn_measured, aligned=a.aligned, bundled=a.bundled, pnp=a.pnp,
-                 track_size=None if a.track_size is None else list(a.track_size), used=used,
+                 track_size=None if a.track_size is None else list(a.track_size),
+                 odometry_frames=a.odometry_frames, used=used,
                  combined=combined)
 
 

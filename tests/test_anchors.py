@@ -144,6 +144,10 @@ def test_anchor_schedule_and_options() -> None:
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_combine": 0})
     with pytest.raises(UserError, match="--anchor-combine needs --anchor vo"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked", "anchor_combine": 3})
+    with pytest.raises(UserError, match="--anchor-stride must be a number of frames >= 1"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_stride": 0})
+    with pytest.raises(UserError, match="--anchor-stride needs --anchor vo"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked", "anchor_stride": 2})
     with pytest.raises(UserError, match="--anchor-bundle-scale needs --anchor-bundle"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_bundle_scale": 20})
     for bad in (-1.0, float("nan")):
@@ -741,3 +745,83 @@ def test_trainer_holds_the_depth_scale_where_the_first_anchors_were_built(synth_
         TrainConfig.from_dict({"w_depth_scale": 1.0})
     with pytest.raises(UserError, match="--w-depth-scale must be a number >= 0"):
         _cfg(w_depth_scale=-1.0)
+
+
+def test_strided_frames_and_poses_in_between() -> None:
+    """``strided`` keeps every n-th frame and the last; ``in_between`` puts a frame between two kept
+    ones on the line between their centres and on the arc between their orientations: a camera
+    moving and turning at constant rates is rebuilt exactly from every third pose."""
+    from scipy.spatial.transform import Rotation
+
+    from relocdepth.anchors import in_between, strided
+
+    assert strided(10, 3) == [0, 3, 6, 9] and strided(11, 3) == [0, 3, 6, 9, 10]
+    assert strided(5, 1) == [0, 1, 2, 3, 4] and strided(1, 4) == [0]
+    n = 11
+    T = np.repeat(np.eye(4)[None], n, axis=0)
+    T[:, :3, :3] = Rotation.from_rotvec(np.outer(np.arange(n), np.radians([1.0, 2.0, -0.5]))).as_matrix()
+    T[:, :3, 3] = np.outer(np.arange(n), [0.01, -0.02, 0.005]) + [1.0, 2.0, 3.0]
+    kept = strided(n, 3)
+    assert np.allclose(in_between(T[kept], kept, n), T, atol=1e-12)
+    # a turn about another axis halfway between two kept frames: half the angle, the centres' midpoint
+    R = Rotation.from_rotvec([0.0, 0.0, np.radians(40)]).as_matrix()
+    two = np.repeat(np.eye(4)[None], 2, axis=0)
+    two[1, :3, :3], two[1, :3, 3] = R, [0.2, 0.0, 0.0]
+    mid = in_between(two, [0, 2], 3)[1]
+    assert np.isclose(rotation_angle_deg(mid[:3, :3]), 20.0) and np.allclose(mid[:3, 3], [0.1, 0, 0])
+    assert np.isclose(rotation_angle_deg(mid[:3, :3].T @ R), 20.0)
+    with pytest.raises(ValueError, match="do not span"):
+        in_between(T[[0, 3]], [0, 3], n)  # the last frame not among them
+
+
+def test_strided_anchors_run_the_odometry_on_the_kept_frames(synth_shards: Path) -> None:
+    """``stride`` 2: the first sequence's kept frames are anchored at the odometry of those frames
+    alone, the others in between them; depth is asked for every frame; with true depth the first
+    sequence is as metric and right as with every frame (the bounds of the test above)."""
+    from relocdepth.anchors import build_anchors, in_between, sequences_of, strided
+    from relocdepth.data import ImageFrames, scale_and_crop
+    from relocdepth.vo import world_trajectory
+
+    frames = ImageFrames.open(synth_shards)
+    T_gt, depth_gt = _gt(synth_shards, frames)
+    seqs = sequences_of(frames)
+    W_, H_ = frames.frames[0].intrinsics.width, frames.frames[0].intrinsics.height
+    asked: list[int] = []
+
+    def depth(ix: list[int], ims: list[np.ndarray]) -> list[np.ndarray]:
+        asked.extend(ix)
+        return [depth_gt[i] for i in ix]
+
+    a = build_anchors(frames, depth, (W_, H_), stride=2)
+    assert sorted(asked) == list(range(len(frames))) and a.lost == 0 and len(a.registration) == len(seqs) - 1
+    ix = seqs[0]
+    kept = strided(len(ix), 2)
+    assert len(kept) < len(ix)
+    images = [scale_and_crop(frames.read_image(ix[k]), frames.frames[ix[k]].intrinsics, W_, H_, 1.0, 0, 0)[0]
+              for k in kept]
+    w = world_trajectory([images], [frames.frames[0].intrinsics.K()], [lambda j: depth_gt[ix[kept[j]]]])
+    assert a.keyframes <= sum(len(strided(len(s), 2)) for s in seqs)
+    assert np.allclose(a.T_wc[ix], in_between(w.world[0], kept, len(ix)).astype(np.float32), atol=1e-6)
+    rel_gt = np.linalg.inv(T_gt[ix[0]]) @ T_gt[ix]
+    path = np.linalg.norm(np.diff(T_gt[ix, :3, 3], axis=0), axis=1).sum()
+    err = np.linalg.norm(a.T_wc[ix, :3, 3] - rel_gt[:, :3, 3], axis=1)
+    assert path > 0.1 and err.max() < 0.4 * path, (err, path)
+    assert rotation_angle_deg(np.swapaxes(a.T_wc[ix, :3, :3], -1, -2) @ rel_gt[:, :3, :3]).max() < 5.0
+    with pytest.raises(ValueError, match="stride must be >= 1"):
+        build_anchors(frames, depth, (W_, H_), stride=0)
+
+
+def test_trainer_builds_strided_anchors(synth_shards: Path, tmp_path: Path) -> None:
+    """``anchor_stride`` reaches the build: its event says on how many frames the odometry ran
+    (every second of each sequence, and its last), without stride on all."""
+    from relocdepth.anchors import sequences_of, strided
+    from relocdepth.data import ImageFrames
+    from relocdepth.train import train
+
+    seqs = sequences_of(ImageFrames.open(synth_shards))
+    for stride, frames in ((2, sum(len(strided(len(ix), 2)) for ix in seqs)), (1, sum(map(len, seqs)))):
+        run = tmp_path / f"run{stride}"
+        train(synth_shards, run, _cfg(max_steps=2, anchor_stride=stride))
+        log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
+        assert [d["odometry_frames"] for d in log if d.get("event") == "anchors"] == [frames]
+    assert frames > sum(len(strided(len(ix), 2)) for ix in seqs)
