@@ -397,9 +397,9 @@ def test_trainer_holds_the_anchors_scale_when_asked(synth_shards: Path, tmp_path
 
     seen, build = [], A.build_anchors
 
-    def spy(frames, depth, size, cfg=None, track_width=0):  # noqa: ANN001, ANN202
+    def spy(frames, depth, size, cfg=None, track_width=0, stride=1):  # noqa: ANN001, ANN202
         seen.append(cfg)
-        return build(frames, depth, size, cfg, track_width)
+        return build(frames, depth, size, cfg, track_width, stride)
 
     monkeypatch.setattr(A, "build_anchors", spy)
     train(synth_shards, tmp_path / "held", _cfg(max_steps=2, anchor_bundle=True, anchor_bundle_scale=5))
