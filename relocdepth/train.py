@@ -172,8 +172,8 @@ class TrainConfig:
     # "vo": each build's odometry runs on every this-many-th frame of each sequence (and its last),
     # the frames between taking poses interpolated between theirs; the sequences are registered
     # on all frames (relocdepth.anchors.build_anchors). A build's bundle adjustment grows faster
-    # than the frames (its tracks grow longer); frames 1 cm apart (30 fps) give it little more
-    # than frames 3 cm apart (1: every frame).
+    # than the frames (its tracks grow longer); frames 7 mm apart (30 fps) give it little more
+    # than frames 14 mm apart (README, Training: builds that scale with the scene; 1: every frame).
     anchor_stride: int = 1
     # "vo": hold the depth network's scale where it was at the first anchors' build, with this
     # weight (relocdepth.method.Bootstrap.w_depth_scale; 0: free, the paper's). Monocular training
