@@ -201,12 +201,10 @@ def in_between(T_wc: np.ndarray, at: list[int], n: int) -> np.ndarray:
     if at_[0] != 0 or at_[-1] != n - 1 or len(at_) != len(T_wc) or np.any(np.diff(at_) <= 0):
         raise ValueError(f"poses at frames {list(at)} do not span {n} frames in order")
     out = np.repeat(np.eye(4)[None], n, axis=0)
-    if len(at_) == 1:
-        out[0] = T_wc[0]
-        return out
-    j = np.arange(n)
-    out[:, :3, :3] = Slerp(at_, Rotation.from_matrix(T_wc[:, :3, :3]))(j).as_matrix()
-    out[:, :3, 3] = np.stack([np.interp(j, at_, T_wc[:, k, 3]) for k in range(3)], axis=1)
+    if n > 1:  # (one frame: nothing between)
+        j = np.arange(n)
+        out[:, :3, :3] = Slerp(at_, Rotation.from_matrix(T_wc[:, :3, :3]))(j).as_matrix()
+        out[:, :3, 3] = np.stack([np.interp(j, at_, T_wc[:, k, 3]) for k in range(3)], axis=1)
     out[at_] = T_wc  # exact where built
     return out
 
