@@ -97,12 +97,19 @@ def any_rank(d: Dist, flags: list[bool], device: Any) -> list[bool]:
     """Element-wise OR of boolean flags over all ranks (identity in one process)."""
     if not d.enabled:
         return flags
+    return [v > 0 for v in max_over_ranks(d, [float(f) for f in flags], device)]
+
+
+def max_over_ranks(d: Dist, values: list[float], device: Any) -> list[float]:
+    """Element-wise maximum of numbers over all ranks (identity in one process)."""
+    if not d.enabled:
+        return values
     import torch
     import torch.distributed as dist
 
-    t = torch.tensor([float(f) for f in flags], device=device)
+    t = torch.tensor([float(v) for v in values], dtype=torch.float64, device=device)
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return [bool(v) for v in t.tolist()]
+    return t.tolist()
 
 
 def barrier(d: Dist) -> None:

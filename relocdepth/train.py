@@ -33,6 +33,7 @@ from relocdepth.distributed import (
     any_rank,
     broadcast_buffers,
     init_distributed,
+    max_over_ranks,
     parameter_digest,
     shutdown_distributed,
 )
@@ -132,6 +133,13 @@ class TrainConfig:
     # the steps, so that their share of the run's time does not grow with a scene's frames as
     # fast as a fixed interval's does (a build's cost grows with the frames).
     anchor_every_growth: float = 0.0
+    # Let the rebuild interval follow the builds' cost: after a build that took B seconds the next
+    # comes at least ceil(B (1 - F) / (F s)) steps on, s the run's mean seconds a step outside the
+    # builds (0: off), so that the builds take at most this fraction F of the run's time whatever
+    # a scene's frames make them cost. The interval is measured on the machine at each build and
+    # kept in the checkpoint (a resumed run builds where the run said it would); with anchor_every
+    # and anchor_every_growth, the longest of the three.
+    anchor_budget: float = 0.0
     w_anchor: float = 1.0
     # "vo": builds from this step on refine the odometry by direct alignment of each frame to the
     # previous one with the depth network's depth (relocdepth.vo.VOConfig.align; None: never). Worth
@@ -245,6 +253,10 @@ class TrainConfig:
             raise UserError(f"--anchor-every-growth must be a number >= 0, not {self.anchor_every_growth}")
         if self.anchor_every_growth and not self.anchor_every:
             raise UserError("--anchor-every-growth needs --anchor-every (it lets the rebuild interval grow)")
+        if not (0 <= self.anchor_budget < 1):
+            raise UserError(f"--anchor-budget must be a fraction of the run's time in [0, 1), not {self.anchor_budget}")
+        if self.anchor_budget and not self.anchor_every:
+            raise UserError("--anchor-budget needs --anchor-every (the shortest interval between builds)")
         if self.anchor_align_step is not None and self.anchor != "vo":
             raise UserError("--anchor-align-step needs --anchor vo (it refines the anchors' odometry)")
         if self.anchor_align_step is not None and self.anchor_align_step < 0:
@@ -431,15 +443,28 @@ def anchor_at(cfg: TrainConfig, step: int) -> float:
     return cfg.w_anchor * (1.0 if cfg.anchor_hold else _bootstrap_fraction(cfg, step))
 
 
-def anchor_due(cfg: TrainConfig, step: int, built_at: int | None) -> bool:
-    """Whether the anchors are (re)built before ``step`` (``built_at``: the step of the current ones)."""
+def anchor_due(cfg: TrainConfig, step: int, built_at: int | None, next_at: int | None = None) -> bool:
+    """Whether the anchors are (re)built before ``step`` (``built_at``: the step of the current ones;
+    ``next_at``: the step the last build set for the next, :func:`anchor_interval`, if it did)."""
     if anchor_at(cfg, step) <= 0:
         return False
     if built_at is None:
         return True
     if cfg.anchor_every <= 0:
         return False
-    return step - built_at >= max(cfg.anchor_every, math.floor(cfg.anchor_every_growth * built_at))
+    return step >= (built_at + anchor_interval(cfg, built_at) if next_at is None else next_at)
+
+
+def anchor_interval(cfg: TrainConfig, built_at: int, build_seconds: float | None = None,
+                    step_seconds: float | None = None) -> int:
+    """Steps from a build at step ``built_at`` to the next (with ``anchor_every``): at least
+    ``anchor_every``, ``anchor_every_growth * built_at``, and with ``anchor_budget`` F as many as
+    keep a build of ``build_seconds`` to F of the time, ``step_seconds`` a step (when both known)."""
+    steps = max(cfg.anchor_every, math.floor(cfg.anchor_every_growth * built_at))
+    if cfg.anchor_budget > 0 and build_seconds is not None and step_seconds:
+        f = cfg.anchor_budget
+        steps = max(steps, math.ceil(build_seconds * (1.0 - f) / (f * step_seconds)))
+    return steps
 
 
 # Fields a resumed run may change (how it runs, not what it learns); the rest come from the run.
@@ -471,6 +496,7 @@ class RunState:
     timing: dict[str, float] = field(default_factory=dict)
     anchors: Any = None  # (N, 4, 4) float32 tensor: the DSC's anchors (TrainConfig.anchor), else None
     anchors_step: int | None = None  # the step they were built at (or a build was not used)
+    anchors_next: int | None = None  # the step the next build is due at (None: from anchors_step)
     # the last builds as built, oldest first (TrainConfig.anchor_combine of them at most): (N, 4, 4) tensors
     anchor_builds: list = field(default_factory=list)
     # (N,) float32 tensor: each training frame's mean log depth at the first anchors' build, which
@@ -760,6 +786,7 @@ def _restore(ck: dict[str, Any], nets: Any, optimizer: Any, scaler: Any, state: 
     if ck.get("anchors"):
         state.anchors, state.anchors_step = ck["anchors"]["T_wc"], int(ck["anchors"]["step"])
         state.anchor_builds = list(ck["anchors"].get("builds") or [state.anchors])
+        state.anchors_next = ck["anchors"].get("next")
         state.depth_ref = ck["anchors"].get("depth_ref")
 
 
@@ -788,6 +815,7 @@ def checkpoint(tr: Trainer, state: RunState) -> None:
         "sampler": {"epoch": state.epoch, "position": state.position}, "rng": _rng_state(),
         "anchors": None if state.anchors is None else {"T_wc": state.anchors, "step": state.anchors_step,
                                                        "builds": state.anchor_builds,
+                                                       "next": state.anchors_next,
                                                        "depth_ref": state.depth_ref},
         "ema": None if tr.ema is None else tr.ema.state_dict(),
     }, keep_last=tr.cfg.keep_last)
@@ -846,14 +874,17 @@ def forward_losses(tr: Trainer, b: dict[str, Any], step: int = 0, anchors: Any =
         return tr.loss_module(b["images"], b["inputs"], b["K"], boot, depth, novel_view_at(tr.cfg, step))
 
 
-def build_anchors(tr: Trainer, state: RunState) -> None:
+def build_anchors(tr: Trainer, state: RunState, step_seconds: float | None = None) -> float:
     """Named step: the DSC's anchors (``tr.cfg.anchor``) from the training frames with the current
-    networks (every rank builds the same ones: same weights, same frames)."""
+    networks (every rank builds the same ones: same weights, same frames), and the step of the
+    next build (``step_seconds``: the run's seconds a step outside the builds, None: not known
+    yet; ``TrainConfig.anchor_budget``). Returns the build's seconds."""
     import torch
 
     from relocdepth import anchors as A
     from relocdepth.vo import VOConfig
 
+    t0 = time.perf_counter()
     m = tr.cfg.method
     if tr.cfg.anchor == "linked":
         a = A.build_linked_anchors(tr.frames, lambda ims, K: A.network_poses(tr.nets, ims, K, tr.device),
@@ -898,6 +929,11 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
     used = not a.unlinked
     combined = 0  # builds the anchors were combined from (0: this one not used)
     state.anchors_step = state.step  # also when not used: the next try is one interval on
+    took = time.perf_counter() - t0
+    # every rank must build at the same steps: the longest interval any rank measured
+    interval = int(max_over_ranks(tr.dist, [anchor_interval(tr.cfg, state.step, took, step_seconds)], tr.device)[0])
+    state.anchors_next = state.step + interval if tr.cfg.anchor_every > 0 else None
+    after = "" if state.anchors_next is None else f", next at step {state.anchors_next}"
     if used:
         k = tr.cfg.anchor_combine
         state.anchor_builds = ([*state.anchor_builds, torch.from_numpy(a.T_wc)])[-k:]
@@ -912,13 +948,15 @@ def build_anchors(tr: Trainer, state: RunState) -> None:
             state.depth_ref = torch.tensor([log_depth[i] for i in range(len(a.T_wc))], dtype=torch.float32)
             how += ", the depth's scale held from here"
         reg = ", ".join(f"{i}/{n}" for i, n in a.registration) or "one sequence"
-        log.info("anchors at step %d: %s, registration inliers %s, %.1f s", state.step, how, reg, a.seconds)
-    tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(a.seconds, 2),
+        log.info("anchors at step %d: %s, registration inliers %s, %.1f s%s", state.step, how, reg, took, after)
+    tr.log.event("anchors", state.step, keyframes=a.keyframes, lost=a.lost, seconds=round(took, 2),
                  registration=[list(r) for r in a.registration], turn_deg=a.turn_deg, turn_pairs=a.turn_pairs,
                  turn_measured=a.turn_measured, aligned=a.aligned, bundled=a.bundled, pnp=a.pnp,
                  track_size=None if a.track_size is None else list(a.track_size),
                  odometry_frames=a.odometry_frames, used=used,
-                 combined=combined)
+                 combined=combined, next_step=state.anchors_next,
+                 step_seconds=None if step_seconds is None else round(step_seconds, 3))
+    return took
 
 
 def optimizer_step(tr: Trainer, state: RunState, loss: Any) -> bool:
@@ -1038,6 +1076,7 @@ def _epoch_batches(tr: Trainer, state: RunState, stop: _StopRequest):
 def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
     cfg = tr.cfg
     last_t, last_n = time.perf_counter(), 0
+    started, started_step, building = last_t, state.step, 0.0  # the steps' time, builds apart
     deadline = None if cfg.max_minutes is None else last_t + 60.0 * cfg.max_minutes
     rate: float | None = None
     while state.epoch < cfg.epochs:
@@ -1056,8 +1095,10 @@ def run_loop(tr: Trainer, state: RunState, stop: _StopRequest) -> None:
             if no_data:
                 tr.log.event("empty_batch", state.step)
             else:
-                if anchor_due(cfg, state.step, state.anchors_step):
-                    build_anchors(tr, state)
+                if anchor_due(cfg, state.step, state.anchors_step, state.anchors_next):
+                    done = state.step - started_step
+                    per_step = (time.perf_counter() - started - building) / done if done else None
+                    building += build_anchors(tr, state, per_step)
                 loss, parts, diag = forward_losses(tr, b, state.step, state.anchors, state.depth_ref)
                 stepped = optimizer_step(tr, state, loss)
                 if not stepped and state.nonfinite_streak >= cfg.max_nonfinite:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import time
 from pathlib import Path
 
 import cv2
@@ -88,7 +89,7 @@ def test_anchor_term_teaches_the_dsc_network_only() -> None:
 
 
 def test_anchor_schedule_and_options() -> None:
-    from relocdepth.train import TrainConfig, anchor_at, anchor_due
+    from relocdepth.train import TrainConfig, anchor_at, anchor_due, anchor_interval
 
     cfg = TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "bootstrap_fade_steps": 4,
                                  "anchor": "vo", "anchor_step": 3, "anchor_every": 5, "w_anchor": 2.0})
@@ -113,6 +114,20 @@ def test_anchor_schedule_and_options() -> None:
             at = s
     assert built[:7] == [3, 8, 13, 18, 23, 28, 35] and built[-3:] == [1165, 1456, 1820]
     assert len(built) == 25  # with a fixed interval of 5: 400
+    # a budget: a build of 30 s with steps of 3 s at 10 % of the time: 30 * 0.9 / (0.1 * 3) = 90 steps on
+    budget = dataclasses.replace(held, anchor_budget=0.1)
+    assert anchor_interval(budget, 8, 30.0, 3.0) == 90 and anchor_interval(budget, 8, 1.0, 3.0) == 5
+    assert anchor_interval(budget, 8) == anchor_interval(budget, 8, 30.0, None) == 5  # not measured yet
+    assert anchor_interval(held, 8, 30.0, 3.0) == 5  # no budget: the time is not looked at
+    assert anchor_interval(dataclasses.replace(budget, anchor_every_growth=0.25), 1000, 30.0, 3.0) == 250
+    assert not anchor_due(budget, 97, 8, 98) and anchor_due(budget, 98, 8, 98)  # the step the build set
+    assert anchor_due(budget, 13, 8, None)  # a checkpoint from before: the interval from the build's step
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(UserError, match="--anchor-budget must be a fraction"):
+            TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
+                                   "anchor_every": 5, "anchor_budget": bad})
+    with pytest.raises(UserError, match="--anchor-budget needs --anchor-every"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_budget": 0.1})
     with pytest.raises(UserError, match="--anchor-every-growth needs --anchor-every"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo",
                                "anchor_every_growth": 0.25})
@@ -319,6 +334,39 @@ def test_trainer_builds_anchors_checkpoints_and_resumes_them(synth_shards: Path,
     log = [json.loads(x) for x in (run / "logs" / "train.jsonl").read_text().splitlines()]
     assert [d["step"] for d in log if d.get("event") == "anchors"] == [1]  # restored, not rebuilt
     assert "L_anchor" in [d for d in log if "loss" in d][-1]["parts"]
+
+
+def test_trainer_spaces_costly_builds_by_the_budget_and_resumes_where_it_said(
+        synth_shards: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``anchor_budget`` 0.5 with ``anchor_every`` 1 and builds made to take 3 s more: the build at
+    step 1 sets the next as many steps on as take as long as it did (step 0 measured: more than
+    one, where every step would build), the checkpoint keeps that step, and a run resumed from
+    step 2 builds there and not before."""
+    import relocdepth.anchors as A
+    from relocdepth import checkpoint as ckpt_io
+    from relocdepth.train import train
+
+    build = A.build_anchors
+
+    def slow(*args, **kw):  # noqa: ANN002, ANN003, ANN202
+        time.sleep(3.0)
+        return build(*args, **kw)
+
+    def built() -> list[dict]:
+        return [d for d in map(json.loads, (run / "logs" / "train.jsonl").read_text().splitlines())
+                if d.get("event") == "anchors"]
+
+    monkeypatch.setattr(A, "build_anchors", slow)
+    run = tmp_path / "run"
+    cfg = dict(anchor_every=1, anchor_budget=0.5, bootstrap_steps=100, checkpoint_every=1, keep_last=100)
+    train(synth_shards, run, _cfg(max_steps=2, **cfg))
+    (first,) = built()
+    nxt = first["next_step"]
+    assert first["step"] == 1 and first["seconds"] >= 3.0 and first["step_seconds"] < 3.0
+    assert nxt >= 3, first
+    assert ckpt_io.load_checkpoint(ckpt_io.list_checkpoints(run)[-1])["anchors"]["next"] == nxt
+    train(synth_shards, run, _cfg(max_steps=nxt + 1, resume=True, **cfg))
+    assert [d["step"] for d in built()] == [1, nxt]
 
 
 def test_trainer_aligns_the_anchors_odometry_from_the_step_asked(synth_shards: Path, tmp_path: Path) -> None:
