@@ -11,6 +11,7 @@ from relocdepth.ba import (
     BAConfig,
     build_tracks,
     bundle_adjust,
+    dense_schur_product,
     matrix_to_rotvec,
     path_scale,
     reprojection_jacobians,
@@ -126,6 +127,23 @@ def test_the_reduced_systems_block_product_is_the_dense_one() -> None:
     assert S.shape == (6 * n_cam, 6 * n_cam)
     np.testing.assert_allclose(S.toarray(), Ed @ Bd @ Ed.T, rtol=1e-12, atol=1e-12)
     assert not S.toarray()[-6:].any()
+    for chunk in (2, 3, 256):  # several groups of points (one left short), and one group
+        np.testing.assert_allclose(dense_schur_product(E, B, cam, pt, n_cam, chunk), Ed @ Bd @ Ed.T,
+                                   rtol=1e-12, atol=1e-12)
+    assert not dense_schur_product(E[:0], B, cam[:0], pt[:0], n_cam).any()  # no observations
+
+
+def test_the_reduced_system_is_solved_when_rounding_leaves_it_indefinite() -> None:
+    """Positive definite: Cholesky's solution; indefinite (no Cholesky factor): still solved;
+    singular: NaN, which the fit answers with more damping."""
+    from relocdepth.ba import _solve_positive_definite
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(12, 12))
+    b = rng.normal(size=12)
+    for S in (A @ A.T + np.eye(12), A + A.T):
+        np.testing.assert_allclose(S @ _solve_positive_definite(S, b), b, atol=1e-9)
+    assert np.isnan(_solve_positive_definite(np.zeros((12, 12)), b)).all()
 
 
 def test_tracks_last_several_frames_and_follow_the_scene(rendered: dict) -> None:
@@ -288,8 +306,13 @@ def test_drift_is_taken_out(rendered: dict) -> None:
     assert rotation_angle_deg(np.swapaxes(out.T_wc[:, :3, :3], 1, 2) @ from_truth.T_wc[:, :3, :3]).max() < 0.2
 
 
-def test_the_odometry_is_refined(rendered: dict) -> None:
-    """From the odometry of the same frames (true depth), the fit is much nearer the truth."""
+@pytest.mark.parametrize("dense_cameras", [1000, 0])
+def test_the_odometry_is_refined(rendered: dict, dense_cameras: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """From the odometry of the same frames (true depth), the fit is much nearer the truth, with
+    the cameras' reduced system dense (Cholesky) and sparse (SuperLU) alike."""
+    import relocdepth.ba as ba
+
+    monkeypatch.setattr(ba, "DENSE_CAMERAS", dense_cameras)
     T = _relative_to_first(rendered["T"])
     K, depth = INTR.K(), rendered["depth"].__getitem__
     odometry = chain(rendered["images"], K, depth).T_wc
