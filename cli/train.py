@@ -87,7 +87,7 @@ def train(
     ctx: typer.Context,
     shards: Annotated[str, typer.Argument(help="Dataset folder written by `reloc ingest` (trains on its train split), or its URL (http(s)://, file://, s3:// ...: fetched once into ~/.cache/relocdepth).")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Run folder: config.json, logs/, checkpoints/.")] = Path("runs/default"),
-    recipe: Annotated[str, typer.Option(help="Named recipe: paper (the defaults), paper-bootstrap, cpu, cpu-bootstrap, cpu-posenet, cpu-anchored, cpu-linked, demo (README, Training). Options given here override it.")] = "paper",
+    recipe: Annotated[str, typer.Option(help="Named recipe: paper (the defaults), paper-bootstrap, cpu, cpu-bootstrap, cpu-posenet, cpu-anchored, cpu-anchored-views, cpu-linked, demo (README, Training). Options given here override it.")] = "paper",
     config: Annotated[Path | None, typer.Option("--config", help="YAML/JSON file of training options, or a run's config.json (repeats that run). Applied over --recipe; options given here override it.")] = None,
     epochs: Annotated[int, typer.Option(help="Epochs; one epoch = every training frame once as a target (paper: 300).")] = 300,
     batch_size: Annotated[int, typer.Option("--batch-size", help="Triplets per step and per process (paper: 6).")] = 6,

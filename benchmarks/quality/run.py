@@ -91,6 +91,8 @@ RECIPES: dict[str, list[str]] = {
     "cpu-bootstrap-no-dsc": ["--recipe", "cpu-bootstrap", "--no-dsc"],
     # `cpu-anchored`: the bootstrap recipe with the DSC's absolute anchors from odometry.
     "cpu-anchored": ["--recipe", "cpu-anchored"],
+    # `cpu-anchored-views`: the anchors rebuilt within a budget, with the depth's new views.
+    "cpu-anchored-views": ["--recipe", "cpu-anchored-views"],
     # `cpu-linked`: the bootstrap recipe with anchors from the DSC's own poses, sequences linked.
     "cpu-linked": ["--recipe", "cpu-linked"],
 }
