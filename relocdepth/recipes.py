@@ -82,15 +82,17 @@ RECIPES: dict[str, dict[str, Any]] = {
     # (trial 40), as the demo scene's had (trials 21-22).
     "cpu-anchored": {**_CPU, **_BOOTSTRAP, **_ANCHORS, "anchor_bundle_scale_degree": 1, "anchor_combine": 3,
                      "bootstrap_steps": 100_000},
-    # `cpu-anchored` with the novel views of the depth alone (L_nv at 0.1, views from 0.1 m
-    # behind), the depth's scale held from the first build (w_depth_scale 1), the anchors rebuilt
-    # every 50 steps at least and the last eight builds combined, without the scale's line. On
-    # the walk-through (192x128, +-2 frames) and the demo scene from random init all six runs of
-    # three seeds each reached rung 3 within 2 hours, the walk-through from steps 1050-1200, the
-    # demo scene from 400-900 (README, Quality: trial 52). The builds take at most a tenth of the
-    # run's time (anchor_budget): every 50 steps on the walk-through (2 % of its time), every
-    # ~100 on the demo scene, where every 50 took 18 %; a scene of thousands of frames gets
-    # builds hundreds of steps apart (README, Training: builds that scale with the scene).
+    # `cpu-anchored` with the novel views of the depth alone (L_nv at 0.1, views moved back by up
+    # to a tenth of their median depth), the depth's scale held from the first build
+    # (w_depth_scale 1), the anchors rebuilt every 50 steps at least and the last eight builds
+    # combined, without the scale's line. On the walk-through (192x128, +-2 frames) and the demo
+    # scene from random init all six runs of three seeds each reached rung 3 within 2 hours, the
+    # walk-through from steps 1050-1200, the demo scene from 400-900 (README, Quality: trial 52).
+    # The builds take at most a tenth of the run's time (anchor_budget): every 50 steps on the
+    # walk-through (1.9 % of its time), every 85-134 on the demo scene, where every 50 took 18 %;
+    # so, walk-through seed 2 at rung 3 from step 1050 and the demo from step 400 (trial 54).
+    # On 2000 generated frames (4 x 500) the builds came 1555 steps apart and the network stayed
+    # at rung 0 within 2 hours, its depth learned (trial 54).
     "cpu-anchored-views": {**_CPU, **_BOOTSTRAP, **_ANCHORS, "anchor_every": 50, "anchor_budget": 0.1,
                            "anchor_combine": 8, "w_novel_view": 0.1, "novel_view_pose": False,
                            "novel_view_back": 0.1, "w_depth_scale": 1.0, "bootstrap_steps": 100_000},
