@@ -18,7 +18,6 @@ trainer pulls each DSC cell's pose towards its frame's (:class:`relocdepth.metho
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -57,13 +56,12 @@ MIN_LINK_INLIERS = 3
 class Anchors:
     """``T_wc (N, 4, 4)`` float32: a world pose per training frame (``ImageFrames`` order), and what
     the build found: keyframes, frames whose pose could not be measured, registration inliers per
-    sequence after the first (out of links), seconds."""
+    sequence after the first (out of links). (The trainer times the build itself.)"""
 
     T_wc: np.ndarray
     keyframes: int
     lost: int
     registration: list[tuple[int, int]]
-    seconds: float
     turn_deg: float | None = None  # linked anchors: the angle their centres were turned by (None: not turned)
     turn_pairs: int = 0  # ... the measured pairs that agree with the fitted turn (within DIRECTION_MAX_DEG)
     turn_measured: int = 0  # ... out of this many measured pairs (too few agreeing: not turned)
@@ -133,7 +131,6 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
 
     if stride < 1:
         raise ValueError(f"stride must be >= 1, not {stride}")
-    t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
     keep = [strided(len(ix), stride) for ix in seqs]
@@ -161,7 +158,7 @@ def build_anchors(frames: ImageFrames, depth: DepthOf, size: tuple[int, int],
         T[ix] = T_w.astype(np.float32)
     trajs = [w.trajs[0] for w in own]
     return Anchors(T, sum(len(t.keyframes) for t in trajs), sum(len(t.lost) for t in trajs),
-                   [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, unlinked=unlinked_sequences(regs),
+                   [(r.inliers, r.links) for r in regs], unlinked=unlinked_sequences(regs),
                    aligned=sum(w.aligned for w in own) if cfg.align else None, track_size=track,
                    bundled=[b for w in own for b in w.bundled] if cfg.bundle else None,
                    pnp=sum(len(t.pnp) for t in trajs), odometry_frames=sum(map(len, keep)))
@@ -326,7 +323,6 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
     them: it is listed in ``unlinked``, nothing is turned, and the anchors are not to be used."""
     import cv2
 
-    t0 = time.perf_counter()
     W, H = size
     seqs = sequences_of(frames)
     T_seq, link_K, link_depth = [], [], []
@@ -366,7 +362,7 @@ def build_linked_anchors(frames: ImageFrames, poses: PosesOf, size: tuple[int, i
         if kept and kept >= min_agreement * len(measured):
             out = turn_centres(out, W_turn).astype(np.float32)
             turn_deg = float(rotation_angle_deg(W_turn))
-    return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], time.perf_counter() - t0, turn_deg, kept,
+    return Anchors(out, 0, 0, [(r.inliers, r.links) for r in regs], turn_deg, kept,
                    len(measured) if not unlinked else 0, unlinked)
 
 
