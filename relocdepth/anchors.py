@@ -7,8 +7,8 @@ trainer pulls each DSC cell's pose towards its frame's (:class:`relocdepth.metho
 
 - ``vo`` (:func:`build_anchors`): once the depth network has learned (the bootstrap's warps teach
   it in a few hundred steps), keyframe odometry over each training sequence with that depth, and
-  registration of the sequences into the first one's world (:mod:`relocdepth.vo`). The world is the
-  first training sequence's first frame, in the depth network's units at the time of the build.
+  registration of the sequences into one world, each against every sequence placed before it
+  (:func:`relocdepth.vo.join_sequences`). The world is the first training sequence's first frame, in the depth network's units at the time of the build.
 - ``linked`` (:func:`build_linked_anchors`): the DSC network's own poses, every sequence after the
   first registered into the first one's world by wide-baseline links between similar frames. The
   bootstrap makes the DSC's poses right *within* each sequence (on the demo scene 1.3-1.7 deg after
@@ -27,7 +27,7 @@ import torch
 
 from relocdepth.data import ImageFrames, scale_and_crop
 from relocdepth.models import disp_to_depth
-from relocdepth.vo import VOConfig, join_sequences, world_trajectory
+from relocdepth.vo import MIN_LINK_INLIERS, VOConfig, join_sequences, world_trajectory
 
 # Links are matched on the stored images resized to this width (up or down): SIFT needs the pixels.
 # Demo scene stored at 128x96, nearest frames of two training paths, median rotation error of a
@@ -44,12 +44,6 @@ LINK_QUERIES = 75
 # after 1200 steps, where turning reached rung 3 (README, trial 19). The default of
 # TrainConfig.anchor_turn_agreement.
 TURN_MIN_AGREEMENT = 0.65
-# A sequence counts as linked only when at least this many of its links agree on where it lies
-# (the robust mean's inliers, the medoid included); fewer is no consensus. On the real walk-through
-# (192x128, step 600) the network's links agreed 1 of 45, 1 of 45 and 1 of 24, and the sequences so
-# placed were 65 deg apart in orientation while each was within 1-20 deg of the truth on its own;
-# the demo scene's agree 45-75 of 225 (README, trial 20).
-MIN_LINK_INLIERS = 3
 
 
 @dataclass
@@ -66,7 +60,7 @@ class Anchors:
     turn_pairs: int = 0  # ... the measured pairs that agree with the fitted turn (within DIRECTION_MAX_DEG)
     turn_measured: int = 0  # ... out of this many measured pairs (too few agreeing: not turned)
     # the sequences (1 = the second) whose links agree too little (MIN_LINK_INLIERS) to place them in
-    # the first one's world; such anchors are not to be used
+    # the world of the others; such anchors are not to be used
     unlinked: list[int] = field(default_factory=list)
     # vo anchors refined by direct alignment (VOConfig.align): the frames whose alignment to the
     # previous frame was trusted, out of the frames after each sequence's first (None: not aligned)

@@ -234,6 +234,57 @@ def test_join_sequences_puts_poses_of_other_worlds_in_the_first_ones(rendered: d
         join_sequences([rendered["img_a"]], [K, K], [T_a], [rendered["depth_a"].__getitem__])
 
 
+def test_join_sequences_leaves_a_sequence_without_consensus_where_it_was(rendered: dict) -> None:
+    """A sequence with nothing to link (blank frames) is not placed: its registration says so
+    (no agreeing link) and its poses stay as given; the others are placed as without it."""
+    from relocdepth.vo import MIN_LINK_INLIERS, join_sequences
+
+    K = INTR.K()
+    world_of_a = np.linalg.inv(rendered["T_a"][0])
+    T_a, T_b = world_of_a @ rendered["T_a"], world_of_a @ rendered["T_b"]
+    blank = [np.full_like(rendered["img_a"][0], 128) for _ in range(6)]
+    T_blank = np.repeat(_rigid((0.0, 30.0, 0.0), (1.0, 0.0, 0.0))[None], 6, axis=0)
+    flat = np.ones_like(rendered["depth_a"][0])
+    regs, world = join_sequences([rendered["img_a"], blank, rendered["img_b"]], [K] * 3, [T_a, T_blank, T_b],
+                                 [rendered["depth_a"].__getitem__, lambda j: flat, rendered["depth_b"].__getitem__])
+    assert len(regs) == 2 and regs[0].inliers < MIN_LINK_INLIERS <= regs[1].inliers
+    assert np.allclose(world[1], T_blank) and np.allclose(world[0], T_a)
+    assert np.linalg.norm(world[2][:, :3, 3] - T_b[:, :3, 3], axis=1).max() < 0.05
+
+
+def test_join_sequences_places_a_sequence_by_the_ones_it_overlaps() -> None:
+    """Four paths of a generated scene (every 10th frame of 500), each in a world of its own: the
+    fourth shares too little view with the first to be registered into it alone, so the
+    sequences are placed best linked first, each linked to every one placed before it. Listed
+    second, the fourth is still placed last, by the paths it overlaps."""
+    from relocdepth.vo import MIN_LINK_INLIERS, join_sequences
+
+    cfg = SynthConfig(seed=0, frames=500, width=INTR.width, height=INTR.height, train_sequences=4)
+    scene = build_scene(cfg.seed, cfg)
+    paths = camera_paths(cfg)
+    K = INTR.K()
+    rng = np.random.default_rng(0)
+    world_of_first = np.linalg.inv(paths["seq-01"][0])
+    images, depth, T_own, truth = [], [], [], []
+    for i, name in enumerate(("seq-01", "seq-04", "seq-02", "seq-03")):
+        poses = paths[name][::10]
+        frames = [render(scene, T, INTR) for T in poses]
+        images.append([f[0] for f in frames])
+        depth.append([f[1] for f in frames])
+        own = np.eye(4) if i == 0 else _rigid(tuple(rng.normal(0, 8, 3)), tuple(rng.normal(0, 0.2, 3)))
+        truth.append(world_of_first @ poses)
+        T_own.append(own @ truth[-1])
+    alone = register(images[0], T_own[0], K, depth[0].__getitem__, images[1], T_own[1], K)
+    misplaced = np.linalg.norm((alone.T @ T_own[1])[:, :3, 3] - truth[1][:, :3, 3], axis=1).max()
+    assert alone.inliers < MIN_LINK_INLIERS or misplaced > 0.1, (alone, misplaced)  # can fail
+    regs, world = join_sequences(images, [K] * 4, T_own, [d.__getitem__ for d in depth])
+    assert all(r.inliers >= MIN_LINK_INLIERS for r in regs), regs
+    assert regs[0].links > alone.links  # the fourth was linked to more than the first path
+    for est, T_gt in zip(world, truth):
+        assert np.linalg.norm(est[:, :3, 3] - T_gt[:, :3, 3], axis=1).max() < 0.05
+        assert rotation_angle_deg(np.swapaxes(est[:, :3, :3], -1, -2) @ T_gt[:, :3, :3]).max() < 3.0
+
+
 def test_align_chain_with_true_depth_is_more_precise_than_the_pairs(rendered: dict) -> None:
     # 3 mm against the pairs' 11 mm here (the rotation over the 20 frames: 1.3 deg against 0.9)
     T_gt, depth, images = rendered["T_a"], rendered["depth_a"], rendered["img_a"]
