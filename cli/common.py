@@ -31,6 +31,20 @@ class RefineMatcher(str, Enum):
 REFINE_MATCHER_HELP = ("With --refine: how a pair is matched: klt (the bootstrap's tracks: precise, short "
                        "baselines), sift (descriptors: wider baselines, less precise), klt+sift (SIFT where "
                        "KLT fails).")
+class RefineMap(str, Enum):
+    """Where ``--refine``'s map poses come from (``relocdepth.refine.MAPS``)."""
+
+    auto = "auto"
+    anchors = "anchors"
+    network = "network"
+
+
+REFINE_MAP_HELP = ("With --refine: the training frames' poses the pose is refined against. auto: the run's "
+                   "anchors when its checkpoint has them (--anchor vo: the training video's odometry and bundle "
+                   "adjustment, in the network's world), else the network's own poses of the frames; anchors: "
+                   "those only (an error if the run has none); network: the network's poses. On a generated scene "
+                   "of 2000 training frames the anchors were 4 cm from the truth and the network's poses 18 cm, "
+                   "and the test poses refined against them 7 and 20 cm (README, Localize, evaluate, demo).")
 REFINE_ALIGN_HELP = ("With --refine: after the pairs, align the pose to the nearest training frames pixel by "
                      "pixel (their images and the network's depth), from the pairs' pose and from the "
                      "network's; the aligned pose is used when it explains those frames clearly better than "

@@ -12,7 +12,9 @@ from relocdepth.cli.common import (
     DEVICE_HELP,
     DEVICE_METAVAR,
     REFINE_ALIGN_HELP,
+    REFINE_MAP_HELP,
     REFINE_MATCHER_HELP,
+    RefineMap,
     RefineMatcher,
     parse_device,
     user_errors,
@@ -47,11 +49,12 @@ def localize(
     output: Annotated[Path | None, typer.Option("--output", "-o", metavar="FILE", help="Write the poses to FILE instead of stdout.")] = None,
     batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 8,
     device: Annotated[str, typer.Option(metavar=DEVICE_METAVAR, help=DEVICE_HELP)] = DEVICE_DEFAULT,
-    refine: Annotated[Path | None, typer.Option("--refine", metavar="SHARDS", help="Refine each pose against the training frames of these shards (the run's own) nearest it: two-view geometry and direct alignment with the network's depth, the network's poses of those frames as the map. Not part of the paper's method; each line gains refined_pairs and refined_by (aligned, pairs or none).")] = None,
+    refine: Annotated[Path | None, typer.Option("--refine", metavar="SHARDS", help="Refine each pose against the training frames of these shards (the run's own) nearest it: two-view geometry and direct alignment with the network's depth, against the frames' poses of --refine-map. Not part of the paper's method; each line gains refined_pairs and refined_by (aligned, pairs or none).")] = None,
     refine_neighbours: Annotated[int, typer.Option("--refine-neighbours", min=1, metavar="N", help="With --refine: training frames paired with each image.")] = 3,
     refine_min_pairs: Annotated[int, typer.Option("--refine-min-pairs", min=1, metavar="N", help="With --refine: agreeing pairs needed to replace the network's pose.")] = 2,
     refine_matcher: Annotated[RefineMatcher, typer.Option("--refine-matcher", help=REFINE_MATCHER_HELP)] = RefineMatcher.klt_sift,
     refine_align: Annotated[bool, typer.Option("--refine-align/--no-refine-align", help=REFINE_ALIGN_HELP)] = True,
+    refine_map: Annotated[RefineMap, typer.Option("--refine-map", help=REFINE_MAP_HELP)] = RefineMap.auto,
 ) -> None:
     """World-from-camera pose, confidence and depth of each image from a trained run."""
     from relocdepth.localize import LocalizeConfig
@@ -62,7 +65,7 @@ def localize(
         format=fmt.value, output=str(output) if output else None, batch_size=batch_size,
         device=parse_device(device), refine=str(refine) if refine else None,
         refine_neighbours=refine_neighbours, refine_min_pairs=refine_min_pairs,
-        refine_matcher=refine_matcher.value, refine_align=refine_align,
+        refine_matcher=refine_matcher.value, refine_align=refine_align, refine_map=refine_map.value,
     )
     # Printing to stdout: each batch's lines go out as soon as the batch is done.
     echo = (lambda text: typer.echo(text, nl=False)) if output is None else None

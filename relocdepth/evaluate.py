@@ -56,11 +56,15 @@ class EvalConfig:
     refine_min_pairs: int = 2
     refine_matcher: str = "klt+sift"
     refine_align: bool = True
+    # the map's poses (relocdepth.refine.MAPS): the run's anchors when it has them, or the network's
+    refine_map: str = "auto"
 
     def refine_config(self) -> RefineConfig | None:
         """The refinement's config when ``refine`` is on (a bad option: :class:`UserError`)."""
-        from relocdepth.refine import RefineConfig
+        from relocdepth.refine import MAPS, RefineConfig
 
+        if self.refine and self.refine_map not in MAPS:
+            raise UserError(f"unknown --refine-map {self.refine_map!r}; use one of {', '.join(MAPS)}")
         return RefineConfig.from_options(self.refine_neighbours, self.refine_min_pairs,
                                          self.refine_matcher, self.refine_align) if self.refine else None
 
@@ -306,6 +310,12 @@ def evaluate(
     plots = Path(plots_dir) if plots_dir else report_path.parent / "plots"
     if predictor.meta.get("manifest_hash") != ds.manifest_hash:
         log.warning("the checkpoint was trained on other shards than %s", ds.root)
+    anchors = None  # the run's anchors as the map: read (and, asked for, refused if none) before any work
+    if refine is not None and cfg.refine_map != "network":
+        from relocdepth.refine import map_poses
+
+        T, source = map_poses(cfg.refine_map, ckpt_path, ds, [r.key for r in train_recs], lambda: None)
+        anchors = T if source == "anchors" else None
 
     tr = gather(ds, predictor, train_recs, cfg, depth=False, label="train", depth_scales=True)
     te = gather(ds, predictor, test_recs, cfg, depth=True, label="test")
@@ -325,9 +335,12 @@ def evaluate(
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
     if refine is not None:
-        results = refine_test_poses(ds, predictor, train_recs, test_recs, train_est, test_est, refine)
-        pose["refined"], refined_al = refined_report(fit, train_est, train_gt, results, test_gt,
+        map_T, map_name = (train_est, "network") if anchors is None else (anchors, "anchors")
+        results = refine_test_poses(ds, predictor, train_recs, test_recs, map_T, test_est, refine)
+        map_fit = fit if map_name == "network" else fit_sim3(map_T, train_gt)
+        pose["refined"], refined_al = refined_report(map_fit, map_T, train_gt, results, test_gt,
                                                      te.sequences, refine, cfg.relative_k)
+        pose["refined"]["map"] = map_name
         refined = (*EG.pose_errors(refined_al, test_gt), results)
     report = {
         "format": REPORT_FORMAT, "schema_version": REPORT_VERSION,
@@ -396,16 +409,16 @@ def per_frame_csv(te: Gathered, t_err: np.ndarray, r_err: np.ndarray, nearest_m:
     return buf.getvalue()
 
 
-def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_est: np.ndarray,
+def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, map_T: np.ndarray,
                       test_est: np.ndarray, refine: RefineConfig) -> list[Refined]:
-    """Each test pose refined against its nearest training frames (:mod:`relocdepth.refine`, the
-    network's own poses of the training frames as the map); each :class:`~relocdepth.refine.Refined`
-    in the networks' frame."""
+    """Each test pose refined against its nearest training frames (:mod:`relocdepth.refine`;
+    ``map_T``: the training frames' poses in the networks' world, the run's anchors or the network's
+    own); each :class:`~relocdepth.refine.Refined` in the networks' frame."""
     from relocdepth.progress import progress_bar
     from relocdepth.refine import Refiner
 
     refiner = Refiner.from_images(predictor, lambda i: ds.read_image(train_recs[i]),
-                                  [r.intrinsics for r in train_recs], train_est, refine)
+                                  [r.intrinsics for r in train_recs], map_T, refine)
     out = []
     with progress_bar("evaluate", "frames") as progress:
         task = progress.add_task("refine test", total=len(test_recs))
@@ -418,8 +431,9 @@ def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, train_es
 def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, results: list[Refined],
                    test_gt: np.ndarray, test_sequences: list[str], refine: RefineConfig,
                    relative_k: int = 5) -> tuple[dict, np.ndarray]:
-    """The refined test poses under the same alignment as the network's (fitted on the
-    network's training poses); returns (report section ``pose.refined``, aligned poses)."""
+    """The refined test poses under the alignment ``fit`` of the map's training poses
+    ``train_est`` (the network's, or the run's anchors) to ``train_gt``; returns (report section
+    ``pose.refined``, aligned poses)."""
     refined = np.stack([r.T_wc for r in results])
     by = [r.by for r in results]
     al = EG.apply_sim3(fit.scale, fit.R, fit.t, refined)

@@ -28,7 +28,7 @@ from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
-from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, predict_poses
+from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, map_poses, predict_poses
 from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
@@ -57,6 +57,7 @@ class LocalizeConfig:
     refine_min_pairs: int = 2
     refine_matcher: str = "klt+sift"
     refine_align: bool = True
+    refine_map: str = "auto"  # the map's poses (relocdepth.refine.MAPS)
 
 
 @dataclass(frozen=True)
@@ -286,10 +287,12 @@ def localize_frames(
     return records
 
 
-def training_refiner(predictor: Predictor, shards: str | Path, cfg: RefineConfig) -> Refiner:
-    """A :class:`Refiner` whose map is the training frames of ``shards`` (the network's poses of
-    them, from the run's stored map when this checkpoint built it from these frames, else
-    predicted here with a progress report)."""
+def training_refiner(predictor: Predictor, shards: str | Path, cfg: RefineConfig,
+                     which: str = "auto") -> Refiner:
+    """A :class:`Refiner` whose map is the training frames of ``shards``, posed as ``which``
+    (:func:`relocdepth.refine.map_poses`) says: the run's anchors, or the network's poses of them
+    (from the run's stored map when this checkpoint built it from these frames, else predicted
+    here with a progress report)."""
     from relocdepth.dataset import open_dataset
     from relocdepth.progress import progress_bar
 
@@ -306,7 +309,11 @@ def training_refiner(predictor: Predictor, shards: str | Path, cfg: RefineConfig
             task = bar.add_task("map: training frames", total=len(recs))
             return predict_poses(predictor, read, intrinsics, on_batch=lambda n: bar.advance(task, n))
 
-    T_wc = cached_map_poses(Path(predictor.meta["path"]), ds.manifest_hash, [r.key for r in recs], compute)
+    ckpt_path, keys = Path(predictor.meta["path"]), [r.key for r in recs]
+    T_wc, source = map_poses(which, ckpt_path, ds, keys,
+                             lambda: cached_map_poses(ckpt_path, ds.manifest_hash, keys, compute))
+    log.info("--refine: the map is the %s of %d training frames", "run's anchors" if source == "anchors"
+             else "network's poses", len(recs))
     return Refiner.from_images(predictor, read, intrinsics, T_wc, cfg)
 
 
@@ -345,7 +352,7 @@ def localize(
     predictor = Predictor.from_checkpoint(cfg.checkpoint, device=str(pick_device(cfg.device)))
     if cfg.output and Path(cfg.output).is_dir():
         raise UserError(f"--output {cfg.output} is a folder; give a file name")
-    refiner = None if cfg.refine is None else training_refiner(predictor, cfg.refine, refine_cfg)
+    refiner = None if cfg.refine is None else training_refiner(predictor, cfg.refine, refine_cfg, cfg.refine_map)
     depth = DepthWriter(cfg.depth_out) if cfg.depth_out else None
     try:
         stream = None if on_text is None else (lambda recs: on_text(format_records(recs, cfg.format)))

@@ -6,7 +6,12 @@ test cameras ~20 cm (README, *Quality*), and its test errors follow the test cam
 to the nearest training camera: it recalls training places rather than placing the camera
 between them. Refinement keeps what it does well and measures the rest:
 
-1. the network's own poses of the training frames (``T_wc``, its world and units) are the map;
+1. the training frames' poses ``T_wc`` in the network's world and units are the map: the run's
+   anchors when it has them (:func:`map_poses`: the poses its DSC network was pulled towards,
+   from odometry and bundle adjustment of the training video; on a generated scene of 2000
+   training frames 4 cm from the truth where the network's own poses were 18 cm, and the refined
+   test poses 7 cm where the network's were 22: README, *Localize, evaluate, demo*), else the
+   network's own poses of the training frames;
 2. a query's network pose picks the ``neighbours`` training frames whose centres are nearest
    (among those looking within ``max_view_deg`` of it, when there are any);
 3. each pair (training frame -> query) gets its relative pose from two-view geometry, as the
@@ -36,8 +41,8 @@ A query with fewer than ``min_pairs`` agreeing proposals has no pairs' start (th
 is aligned alone, and kept when that alignment is not trusted): one pair alone is not checked by
 another, and on real images the lone pairs were the wrong ones (a pair across ~0.5 m of a
 walk-through at 192x128 either fails or misleads; README, *Quality*). Nothing here needs ground
-truth: the map is the network's, depth the network's; the protocol's alignment applies to the
-refined pose as to the network's. The paper localizes with the network alone, so this is an
+truth: the map is the run's (its anchors or its network's poses), depth the network's; the
+protocol's alignment, fitted on the map's training poses, applies to the refined pose. The paper localizes with the network alone, so this is an
 addition (off by default; README, fidelity table).
 """
 
@@ -51,6 +56,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -67,6 +73,9 @@ log = logging.getLogger(__name__)
 
 MATCHERS = ("klt", "sift", "klt+sift")
 MAP_NAME = "refine-map.npz"  # beside a run's checkpoints: the training poses of the last --refine
+# Where the map's poses come from (--refine-map): the run's anchors when its checkpoint has them
+# (auto), those only (anchors), or the network's own poses of the training frames (network).
+MAPS = ("auto", "anchors", "network")
 
 
 @dataclass(frozen=True)
@@ -226,6 +235,42 @@ def predict_poses(predictor: Predictor, read: Callable[[int], np.ndarray], intri
         if on_batch is not None:
             on_batch(len(idx))
     return np.concatenate(poses) if poses else np.zeros((0, 4, 4))
+
+
+def anchor_map(ckpt_path: Path, ds: Any, keys: list[str]) -> np.ndarray | None:
+    """The run's anchors as the map: the poses its DSC network was pulled towards (``--anchor vo``:
+    odometry and bundle adjustment of the training video, no ground truth; the networks' world and
+    units) of the training frames ``keys`` of the dataset ``ds``, as ``(len(keys), 4, 4)``. None
+    when the checkpoint holds no anchors or was trained on other shards (the anchors follow the
+    order of the training frames it was trained on)."""
+    from relocdepth.checkpoint import load_checkpoint
+
+    ckpt = load_checkpoint(ckpt_path)
+    anchors = ckpt.get("anchors") or {}
+    if anchors.get("T_wc") is None or ckpt["meta"].get("manifest_hash") != ds.manifest_hash:
+        return None
+    order = {r.key: i for i, r in enumerate(ds.frames("train"))}
+    T = np.asarray(anchors["T_wc"], np.float64)
+    if len(T) != len(order) or any(k not in order for k in keys):
+        return None
+    return T[[order[k] for k in keys]]
+
+
+def map_poses(which: str, ckpt_path: Path, ds: Any, keys: list[str],
+              network: Callable[[], np.ndarray]) -> tuple[np.ndarray, str]:
+    """The map's poses of the training frames ``keys`` and where they came from (``anchors`` or
+    ``network``): ``which`` (:data:`MAPS`) "auto" takes the run's anchors (:func:`anchor_map`)
+    when the checkpoint has them for these frames, else ``network()``; "anchors" only those (none:
+    :class:`UserError`); "network" only ``network()``."""
+    if which not in MAPS:
+        raise UserError(f"unknown --refine-map {which!r}; use one of {', '.join(MAPS)}")
+    T = anchor_map(ckpt_path, ds, keys) if which != "network" else None
+    if T is not None:
+        return T, "anchors"
+    if which == "anchors":
+        raise UserError(f"--refine-map anchors: {ckpt_path} holds no anchors of the training frames of "
+                        f"{ds.root} (a run trained on them with --anchor vo has them)")
+    return network(), "network"
 
 
 def cached_map_poses(ckpt_path: Path, manifest_hash: str, keys: list[str],

@@ -58,7 +58,9 @@ def format_table(report: dict) -> str:
     if "refined" in pose:
         ref = pose["refined"]
         lines.append(
-            f"refined against the {ref['neighbours']} nearest training frames: rotation-only "
+            f"refined against the {ref['neighbours']} nearest training frames"
+            + (f" (the map: the run's {'anchors' if ref['map'] == 'anchors' else 'network poses'})" if "map" in ref else "")
+            + ": rotation-only "
             f"{ref['rotation_only']['median_r_deg']:.2f} deg; "
             + (f"{ref['aligned']} test frame(s) placed by direct alignment, " if "aligned" in ref else "")
             + f"{ref['network_pose_kept']} kept the network's pose"

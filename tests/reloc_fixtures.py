@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -32,6 +33,24 @@ def trained_run(shards: Path, factory: pytest.TempPathFactory) -> Path:
 def copy_run(run: Path, dest: Path) -> Path:
     shutil.copytree(run, dest)
     return dest
+
+
+def with_anchors(run: Path, shards: Path, dest: Path, sim3: tuple) -> tuple[Path, np.ndarray]:
+    """A copy of ``run`` whose checkpoint holds anchors: the training frames' true poses moved by
+    the similarity ``sim3`` (scale, R, t), in the order of the shards' training frames (as the
+    trainer stores them). Returns the copy and those anchors."""
+    from relocdepth.checkpoint import resolve_checkpoint
+    from relocdepth.dataset import open_dataset
+    from relocdepth.eval_geometry import apply_sim3
+
+    run = copy_run(run, dest)
+    ds = open_dataset(shards)
+    anchors = apply_sim3(*sim3, np.stack([ds.read_pose(r) for r in ds.frames("train")]).astype(np.float64))
+    path = resolve_checkpoint(run)
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    ckpt["anchors"] = {"T_wc": torch.as_tensor(anchors, dtype=torch.float32), "step": 1}
+    torch.save(ckpt, path)
+    return run, anchors
 
 
 class FixedDSC(torch.nn.Module):

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import SCENE_FRAMES
-from reloc_fixtures import copy_run, trained_run
+from reloc_fixtures import copy_run, trained_run, with_anchors
 from relocdepth.cli.main import app
 from relocdepth.schemas import validate
 from typer.testing import CliRunner
@@ -435,6 +435,7 @@ def test_evaluate_refine_reports_both_and_the_csv_agrees(run: Path, synth_shards
     assert np.all((pairs >= 0) & (pairs <= 2)) and set(by) <= set(REFINED_BY)
     kept = by == "none"
     assert refined["min_pairs"] == 2 and refined["network_pose_kept"] == int(np.sum(kept))
+    assert refined["map"] == "network"  # the run has no anchors: auto takes the network's poses
     assert refined["align"] is True and refined["aligned"] == int(np.sum(by == "aligned"))
     assert np.all(pairs[kept] < 2) and np.all(pairs[by == "pairs"] >= 2)
     np.testing.assert_allclose(t_ref[kept], t_net[kept], rtol=1e-4, atol=1e-6)
@@ -454,3 +455,44 @@ def test_evaluate_refine_reports_both_and_the_csv_agrees(run: Path, synth_shards
     assert res.exit_code == 0, res.output
     assert "refined" not in json.loads((tmp_path / "plain.json").read_text())["pose"]
     assert "refined" not in (tmp_path / "plain.frames.csv").read_text().splitlines()[0]
+
+
+def test_evaluate_refines_against_the_runs_anchors(run: Path, synth_shards: Path, tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run with anchors (here the training frames' true poses moved by a known similarity) is
+    refined against them (--refine-map auto or anchors), in the training frames' order, and the
+    refined poses are scored under the Sim(3) fitted on them: a refinement that puts every test
+    frame at its true pose in the anchors' world scores no error. --refine-map network keeps the
+    network's poses; anchors asked of a run that has none is one error line."""
+    from relocdepth.refine import Refined, Refiner
+
+    sim3 = (2.5, cv2.Rodrigues(np.radians([10.0, -30.0, 5.0]))[0], np.array([0.4, -1.0, 2.0]))
+    anchored, anchors = with_anchors(run, synth_shards, tmp_path / "run", sim3)
+    ds = open_dataset(synth_shards)
+    truth = {ds.read_image(r).tobytes(): EG.apply_sim3(*sim3, ds.read_pose(r)[None].astype(np.float64))[0]
+             for r in ds.records if r.split == "test"}
+    maps = []
+
+    def refine(self: Refiner, image: np.ndarray, intrinsics, T_wc: np.ndarray) -> Refined:
+        maps.append(self.ref.T_wc)
+        return Refined(truth[image.tobytes()], 2, "aligned")
+
+    monkeypatch.setattr(Refiner, "refine", refine)
+    for which in ("auto", "anchors", "network"):
+        out = tmp_path / f"{which}.json"
+        res = invoke("evaluate", str(synth_shards), "--checkpoint", str(anchored), "-o", str(out),
+                     "--refine", "--refine-map", which)
+        assert res.exit_code == 0, res.output
+        refined = json.loads(out.read_text())["pose"]["refined"]
+        validate("report", json.loads(out.read_text()), "report")
+        if which == "network":
+            assert refined["map"] == "network" and not np.allclose(maps[-1], anchors, atol=1e-3)
+            assert refined["test"]["median_t_m"] > 0.01  # the anchors' world is not the network's
+        else:
+            assert refined["map"] == "anchors" and np.allclose(maps[-1], anchors, atol=1e-5)
+            assert refined["test"]["median_t_m"] < 1e-4 and refined["test"]["median_r_deg"] < 0.01
+            assert "(the map: the run's anchors)" in res.output
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(tmp_path / "x.json"),
+                 "--refine", "--refine-map", "anchors")
+    assert res.exit_code == 2 and "holds no anchors" in res.output
+    assert len(res.output.strip().splitlines()) == 1 and not (tmp_path / "x.json").exists()

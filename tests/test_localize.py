@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from reloc_fixtures import copy_run, trained_run
+from reloc_fixtures import copy_run, trained_run, with_anchors
 from relocdepth.cli.main import app
 from relocdepth.ingest.intrinsics import write_intrinsics_yaml
 from typer.testing import CliRunner
@@ -235,6 +235,30 @@ def test_refine_against_the_training_frames(run: Path, folder: Path, synth_shard
                       "nope")
     bad = invoke(str(folder), "--checkpoint", str(run), "--refine", str(synth_shards), "--refine-matcher", "orb")
     assert bad.exit_code == 2 and "orb" in bad.output and not bad.stdout.startswith("{")
+
+
+def test_refine_map_takes_the_runs_anchors_when_it_has_them(run: Path, folder: Path, synth_shards: Path,
+                                                             tmp_path: Path) -> None:
+    """--refine-map auto (the default) and anchors refine against the run's anchors, in the shards'
+    order, without predicting the training frames; network against the network's poses; anchors
+    asked of a run that has none is one error line."""
+    from relocdepth.localize import training_refiner
+    from relocdepth.predictor import Predictor
+    from relocdepth.refine import MAP_NAME, RefineConfig
+
+    anchored, anchors = with_anchors(run, synth_shards, tmp_path / "run", (1.0, np.eye(3), np.zeros(3)))
+    predictor = Predictor.from_checkpoint(anchored)
+    for which in ("auto", "anchors"):
+        refiner = training_refiner(predictor, synth_shards, RefineConfig(), which)
+        np.testing.assert_allclose(refiner.ref.T_wc, anchors, atol=1e-6)
+    assert not (anchored / "checkpoints" / MAP_NAME).exists()  # the network's poses were not asked for
+    refiner = training_refiner(predictor, synth_shards, RefineConfig(), "network")
+    assert not np.allclose(refiner.ref.T_wc, anchors, atol=1e-3) and (anchored / "checkpoints" / MAP_NAME).exists()
+    lines = records(invoke(str(folder), "--checkpoint", str(anchored), "--refine", str(synth_shards),
+                           "--refine-map", "anchors"))
+    assert len(lines) == FRAMES and all(r["refined_by"] in REFINED_BY for r in lines)
+    assert_user_error(invoke(str(folder), "--checkpoint", str(run), "--refine", str(synth_shards),
+                             "--refine-map", "anchors"), "holds no anchors")
 
 
 def test_refine_map_is_stored_with_the_run(run: Path, folder: Path, synth_shards: Path, tmp_path: Path,
