@@ -447,13 +447,14 @@ def join_sequences(images: Sequence[Sequence[np.ndarray]], K: Sequence[np.ndarra
     after the first, in order) and every sequence's poses in that world.
 
     The sequences are placed one at a time, best linked first. Every sequence not yet placed is
-    linked (:func:`link_transforms`) to each placed one, once, until its links agree
-    :data:`ENOUGH_LINK_INLIERS` times; its links to all the placed ones are averaged together
-    (:func:`average_links`), and the sequence whose links agree most is placed next. So a sequence that shares little view with the first is placed by those it does
-    share views with, and a sequence placed wrong cannot misplace the ones registered after it,
-    as it could if they were registered in the order given. Placing stops when no sequence left
-    has :data:`MIN_LINK_INLIERS` agreeing links; those keep their best registration (its
-    ``inliers`` say so). With two sequences this is :func:`register` of the second into the first.
+    linked (:func:`link_transforms`) to each placed one in turn, until :data:`ENOUGH_LINK_INLIERS`
+    of its links agree; its links to all the placed ones are averaged together
+    (:func:`average_links`), and the sequence whose links agree most is placed next. So a sequence
+    that shares little view with the first is placed by those it does share views with, and the
+    sequences placed on the strongest links are the references of the weaker ones, whatever the
+    order given. Placing stops when no sequence left has :data:`MIN_LINK_INLIERS` agreeing links;
+    those keep their best registration (its ``inliers`` say so). With two sequences this is
+    :func:`register` of the second into the first.
     """
     if not (len(images) == len(K) == len(T_wc) == len(depth)) or not images:
         raise ValueError("join_sequences needs images, K, poses and depth for each of >= 1 sequences")
