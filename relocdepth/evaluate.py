@@ -312,10 +312,11 @@ def evaluate(
         log.warning("the checkpoint was trained on other shards than %s", ds.root)
     anchors = None  # the run's anchors as the map: read (and, asked for, refused if none) before any work
     if refine is not None and cfg.refine_map != "network":
-        from relocdepth.refine import map_poses
+        from relocdepth.refine import anchor_map, no_anchors
 
-        T, source = map_poses(cfg.refine_map, ckpt_path, ds, [r.key for r in train_recs], lambda: None)
-        anchors = T if source == "anchors" else None
+        anchors = anchor_map(ckpt_path, ds, [r.key for r in train_recs])
+        if anchors is None and cfg.refine_map == "anchors":
+            raise no_anchors(ckpt_path, ds)
 
     tr = gather(ds, predictor, train_recs, cfg, depth=False, label="train", depth_scales=True)
     te = gather(ds, predictor, test_recs, cfg, depth=True, label="test")

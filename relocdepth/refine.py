@@ -42,7 +42,8 @@ is aligned alone, and kept when that alignment is not trusted): one pair alone i
 another, and on real images the lone pairs were the wrong ones (a pair across ~0.5 m of a
 walk-through at 192x128 either fails or misleads; README, *Quality*). Nothing here needs ground
 truth: the map is the run's (its anchors or its network's poses), depth the network's; the
-protocol's alignment, fitted on the map's training poses, applies to the refined pose. The paper localizes with the network alone, so this is an
+protocol's alignment, fitted on the map's training poses, applies to the refined pose. The paper
+localizes with the network alone, so this is an
 addition (off by default; README, fidelity table).
 """
 
@@ -268,9 +269,14 @@ def map_poses(which: str, ckpt_path: Path, ds: Any, keys: list[str],
     if T is not None:
         return T, "anchors"
     if which == "anchors":
-        raise UserError(f"--refine-map anchors: {ckpt_path} holds no anchors of the training frames of "
-                        f"{ds.root} (a run trained on them with --anchor vo has them)")
+        raise no_anchors(ckpt_path, ds)
     return network(), "network"
+
+
+def no_anchors(ckpt_path: Path, ds: Any) -> UserError:
+    """The error of ``--refine-map anchors`` asked of a checkpoint without anchors of ``ds``."""
+    return UserError(f"--refine-map anchors: {ckpt_path} holds no anchors of the training frames of "
+                     f"{ds.root} (a run trained on them with --anchor vo has them)")
 
 
 def cached_map_poses(ckpt_path: Path, manifest_hash: str, keys: list[str],
