@@ -37,7 +37,7 @@ import time
 import numpy as np
 
 # cameras, points, mean track length (Poisson), or with a spread the median of log-normal lengths
-SHAPES = {"long": (149, 1300, 34, None), "short": (120, 3000, 8, None), "500": (500, 5570, 8, 1.6)}  # cameras, points, mean track length
+SHAPES = {"long": (149, 1300, 34, None), "short": (120, 3000, 8, None), "500": (500, 5570, 8, 1.6)}
 
 
 def problem(n_cam: int, n_pt: int, length: int, spread: float | None = None, seed: int = 0) -> tuple[np.ndarray, ...]:

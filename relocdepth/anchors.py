@@ -8,7 +8,8 @@ trainer pulls each DSC cell's pose towards its frame's (:class:`relocdepth.metho
 - ``vo`` (:func:`build_anchors`): once the depth network has learned (the bootstrap's warps teach
   it in a few hundred steps), keyframe odometry over each training sequence with that depth, and
   registration of the sequences into one world, each against every sequence placed before it
-  (:func:`relocdepth.vo.join_sequences`). The world is the first training sequence's first frame, in the depth network's units at the time of the build.
+  (:func:`relocdepth.vo.join_sequences`). The world is the first training sequence's first frame,
+  in the depth network's units at the time of the build.
 - ``linked`` (:func:`build_linked_anchors`): the DSC network's own poses, every sequence after the
   first registered into the first one's world by wide-baseline links between similar frames. The
   bootstrap makes the DSC's poses right *within* each sequence (on the demo scene 1.3-1.7 deg after

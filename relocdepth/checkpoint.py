@@ -24,6 +24,8 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from relocdepth.errors import UserError
 from relocdepth.fileio import atomic_write, write_json_atomic
 
@@ -224,7 +226,9 @@ def load_for_inference(path_or_run: str | Path | None, device: str = "cpu",
     ``intrinsics`` (training camera at input size), ``alignment`` (Sim(3) dict or None),
     ``config`` (the training config dict), ``manifest_hash``, ``step``, ``path`` and ``weights``:
     "average" where the checkpoint holds a moving average of the weights (whose networks these
-    then are, unless ``raw``: the trained weights, as training itself uses them), else "raw".
+    then are, unless ``raw``: the trained weights, as training itself uses them), else "raw";
+    ``anchors``: the run's anchors ``(N, 4, 4)`` float64 in its training frames' order (``--anchor``;
+    None without), the map of :func:`relocdepth.refine.map_anchors`.
     """
     from relocdepth.models import ModelConfig, Networks
 
@@ -244,4 +248,6 @@ def load_for_inference(path_or_run: str | Path | None, device: str = "cpu",
     meta["config"] = meta.get("train", {})
     meta["alignment"] = read_alignment(path) or meta.get("alignment")
     meta["path"] = str(path)
+    anchors = ckpt.get("anchors") or {}
+    meta["anchors"] = None if anchors.get("T_wc") is None else np.asarray(anchors["T_wc"], np.float64)
     return nets, meta

@@ -310,13 +310,11 @@ def evaluate(
     plots = Path(plots_dir) if plots_dir else report_path.parent / "plots"
     if predictor.meta.get("manifest_hash") != ds.manifest_hash:
         log.warning("the checkpoint was trained on other shards than %s", ds.root)
-    anchors = None  # the run's anchors as the map: read (and, asked for, refused if none) before any work
-    if refine is not None and cfg.refine_map != "network":
-        from relocdepth.refine import anchor_map, no_anchors
+    anchors = None  # the run's anchors as the map (asked for and missing: refused before any work)
+    if refine is not None:
+        from relocdepth.refine import map_anchors
 
-        anchors = anchor_map(ckpt_path, ds, [r.key for r in train_recs])
-        if anchors is None and cfg.refine_map == "anchors":
-            raise no_anchors(ckpt_path, ds)
+        anchors = map_anchors(cfg.refine_map, predictor.meta, ds, [r.key for r in train_recs])
 
     tr = gather(ds, predictor, train_recs, cfg, depth=False, label="train", depth_scales=True)
     te = gather(ds, predictor, test_recs, cfg, depth=True, label="test")

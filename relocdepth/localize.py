@@ -28,7 +28,7 @@ from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
-from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, map_poses, predict_poses
+from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, map_anchors, predict_poses
 from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
@@ -290,7 +290,7 @@ def localize_frames(
 def training_refiner(predictor: Predictor, shards: str | Path, cfg: RefineConfig,
                      which: str = "auto") -> Refiner:
     """A :class:`Refiner` whose map is the training frames of ``shards``, posed as ``which``
-    (:func:`relocdepth.refine.map_poses`) says: the run's anchors, or the network's poses of them
+    (:func:`relocdepth.refine.map_anchors`) says: the run's anchors, or the network's poses of them
     (from the run's stored map when this checkpoint built it from these frames, else predicted
     here with a progress report)."""
     from relocdepth.dataset import open_dataset
@@ -309,11 +309,12 @@ def training_refiner(predictor: Predictor, shards: str | Path, cfg: RefineConfig
             task = bar.add_task("map: training frames", total=len(recs))
             return predict_poses(predictor, read, intrinsics, on_batch=lambda n: bar.advance(task, n))
 
-    ckpt_path, keys = Path(predictor.meta["path"]), [r.key for r in recs]
-    T_wc, source = map_poses(which, ckpt_path, ds, keys,
-                             lambda: cached_map_poses(ckpt_path, ds.manifest_hash, keys, compute))
-    log.info("--refine: the map is the %s of %d training frames", "run's anchors" if source == "anchors"
-             else "network's poses", len(recs))
+    keys = [r.key for r in recs]
+    T_wc = map_anchors(which, predictor.meta, ds, keys)
+    log.info("--refine: the map is the %s of %d training frames",
+             "network's poses" if T_wc is None else "run's anchors", len(recs))
+    if T_wc is None:
+        T_wc = cached_map_poses(Path(predictor.meta["path"]), ds.manifest_hash, keys, compute)
     return Refiner.from_images(predictor, read, intrinsics, T_wc, cfg)
 
 

@@ -7,7 +7,7 @@ to the nearest training camera: it recalls training places rather than placing t
 between them. Refinement keeps what it does well and measures the rest:
 
 1. the training frames' poses ``T_wc`` in the network's world and units are the map: the run's
-   anchors when it has them (:func:`map_poses`: the poses its DSC network was pulled towards,
+   anchors when it has them (:func:`map_anchors`: the poses its DSC network was pulled towards,
    from odometry and bundle adjustment of the training video; on a generated scene of 2000
    training frames 4 cm from the truth where the network's own poses were 18 cm, and the refined
    test poses 7 cm where the network's were 22: README, *Localize, evaluate, demo*), else the
@@ -238,45 +238,27 @@ def predict_poses(predictor: Predictor, read: Callable[[int], np.ndarray], intri
     return np.concatenate(poses) if poses else np.zeros((0, 4, 4))
 
 
-def anchor_map(ckpt_path: Path, ds: Any, keys: list[str]) -> np.ndarray | None:
-    """The run's anchors as the map: the poses its DSC network was pulled towards (``--anchor vo``:
-    odometry and bundle adjustment of the training video, no ground truth; the networks' world and
-    units) of the training frames ``keys`` of the dataset ``ds``, as ``(len(keys), 4, 4)``. None
-    when the checkpoint holds no anchors or was trained on other shards (the anchors follow the
-    order of the training frames it was trained on)."""
-    from relocdepth.checkpoint import load_checkpoint
-
-    ckpt = load_checkpoint(ckpt_path)
-    anchors = ckpt.get("anchors") or {}
-    if anchors.get("T_wc") is None or ckpt["meta"].get("manifest_hash") != ds.manifest_hash:
-        return None
-    order = {r.key: i for i, r in enumerate(ds.frames("train"))}
-    T = np.asarray(anchors["T_wc"], np.float64)
-    if len(T) != len(order) or any(k not in order for k in keys):
-        return None
-    return T[[order[k] for k in keys]]
-
-
-def map_poses(which: str, ckpt_path: Path, ds: Any, keys: list[str],
-              network: Callable[[], np.ndarray]) -> tuple[np.ndarray, str]:
-    """The map's poses of the training frames ``keys`` and where they came from (``anchors`` or
-    ``network``): ``which`` (:data:`MAPS`) "auto" takes the run's anchors (:func:`anchor_map`)
-    when the checkpoint has them for these frames, else ``network()``; "anchors" only those (none:
-    :class:`UserError`); "network" only ``network()``."""
+def map_anchors(which: str, meta: dict, ds: Any, keys: list[str]) -> np.ndarray | None:
+    """The map's poses of the training frames ``keys`` of the dataset ``ds`` when they are the
+    run's anchors, as ``(len(keys), 4, 4)``; None when the map is the network's own poses (the
+    caller's to predict). ``meta``: the checkpoint's (:func:`relocdepth.checkpoint.load_for_inference`),
+    whose ``anchors`` are the poses its DSC network was pulled towards (``--anchor vo``: odometry
+    and bundle adjustment of the training video, no ground truth; the networks' world and units),
+    in the order of the training frames it was trained on. ``which`` (:data:`MAPS`): "auto" takes
+    them when the checkpoint has them for these shards' frames; "anchors" only them (none:
+    :class:`UserError`); "network" never."""
     if which not in MAPS:
         raise UserError(f"unknown --refine-map {which!r}; use one of {', '.join(MAPS)}")
-    T = anchor_map(ckpt_path, ds, keys) if which != "network" else None
-    if T is not None:
-        return T, "anchors"
-    if which == "anchors":
-        raise no_anchors(ckpt_path, ds)
-    return network(), "network"
-
-
-def no_anchors(ckpt_path: Path, ds: Any) -> UserError:
-    """The error of ``--refine-map anchors`` asked of a checkpoint without anchors of ``ds``."""
-    return UserError(f"--refine-map anchors: {ckpt_path} holds no anchors of the training frames of "
-                     f"{ds.root} (a run trained on them with --anchor vo has them)")
+    if which == "network":
+        return None
+    T, order = meta.get("anchors"), {r.key: i for i, r in enumerate(ds.frames("train"))}
+    if (T is None or meta.get("manifest_hash") != ds.manifest_hash or len(T) != len(order)
+            or any(k not in order for k in keys)):
+        if which == "anchors":
+            raise UserError(f"--refine-map anchors: {meta['path']} holds no anchors of the training frames "
+                            f"of {ds.root} (a run trained on them with --anchor vo has them)")
+        return None
+    return np.asarray(T, np.float64)[[order[k] for k in keys]]
 
 
 def cached_map_poses(ckpt_path: Path, manifest_hash: str, keys: list[str],
