@@ -310,11 +310,13 @@ def evaluate(
     plots = Path(plots_dir) if plots_dir else report_path.parent / "plots"
     if predictor.meta.get("manifest_hash") != ds.manifest_hash:
         log.warning("the checkpoint was trained on other shards than %s", ds.root)
-    anchors = None  # the run's anchors as the map (asked for and missing: refused before any work)
-    if refine is not None:
-        from relocdepth.refine import map_anchors
+    from relocdepth.refine import map_anchors
 
-        anchors = map_anchors(cfg.refine_map, predictor.meta, ds, [r.key for r in train_recs])
+    keys = [r.key for r in train_recs]
+    # the run's anchors of these training frames (None: it has none); as the refinement's map
+    # only where --refine-map takes them (asked for and missing: refused before any work)
+    run_anchors = map_anchors("auto", predictor.meta, ds, keys)
+    anchors = None if refine is None else map_anchors(cfg.refine_map, predictor.meta, ds, keys)
 
     tr = gather(ds, predictor, train_recs, cfg, depth=False, label="train", depth_scales=True)
     te = gather(ds, predictor, test_recs, cfg, depth=True, label="test")
@@ -327,6 +329,11 @@ def evaluate(
     alignment = sim3_to_dict(fit.scale, fit.R, fit.t, fitted_on=str(ds.root),
                              frames=len(train_recs), manifest_hash=ds.manifest_hash, created=created,
                              degenerate=fit.degenerate is not None, degenerate_reason=fit.degenerate)
+    anchors_fit = None if run_anchors is None else fit_sim3(run_anchors, train_gt)
+    if anchors_fit is not None:  # for poses refined against the anchors (here, and localize's)
+        alignment["anchors"] = sim3_to_dict(anchors_fit.scale, anchors_fit.R, anchors_fit.t,
+                                            frames=len(train_recs), degenerate=anchors_fit.degenerate is not None,
+                                            degenerate_reason=anchors_fit.degenerate)
     depth = M.depth_summary(te.depth)
     units = depth is not None and fit.degenerate is None
     ratios = depth_pose_ratios(te.depth, fit.scale) if units else np.full(len(test_recs), np.nan)
@@ -334,11 +341,10 @@ def evaluate(
     t_err, r_err = EG.pose_errors(test_al, test_gt)
     refined = None
     if refine is not None:
-        map_T, map_name = (train_est, "network") if anchors is None else (anchors, "anchors")
+        map_T, map_fit, map_name = (train_est, fit, "network") if anchors is None else (anchors, anchors_fit, "anchors")
         results = refine_test_poses(ds, predictor, train_recs, test_recs, map_T, test_est, refine)
-        map_fit = fit if map_name == "network" else fit_sim3(map_T, train_gt)
         pose["refined"], refined_al = refined_report(map_fit, map_T, train_gt, results, test_gt,
-                                                     te.sequences, refine, cfg.relative_k)
+                                                     te.sequences, refine, cfg.relative_k, network_fit=fit)
         pose["refined"]["map"] = map_name
         refined = (*EG.pose_errors(refined_al, test_gt), results)
     report = {
@@ -429,13 +435,17 @@ def refine_test_poses(ds, predictor, train_recs: list, test_recs: list, map_T: n
 
 def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, results: list[Refined],
                    test_gt: np.ndarray, test_sequences: list[str], refine: RefineConfig,
-                   relative_k: int = 5) -> tuple[dict, np.ndarray]:
+                   relative_k: int = 5, network_fit: EG.Sim3 | None = None) -> tuple[dict, np.ndarray]:
     """The refined test poses under the alignment ``fit`` of the map's training poses
-    ``train_est`` (the network's, or the run's anchors) to ``train_gt``; returns (report section
-    ``pose.refined``, aligned poses)."""
+    ``train_est`` (the network's, or the run's anchors) to ``train_gt``, those that kept the
+    network's pose under ``network_fit`` (its own poses' alignment; None: ``fit``); returns
+    (report section ``pose.refined``, aligned poses)."""
     refined = np.stack([r.T_wc for r in results])
     by = [r.by for r in results]
     al = EG.apply_sim3(fit.scale, fit.R, fit.t, refined)
+    kept = np.array([b == "none" for b in by])
+    if network_fit is not None and kept.any():
+        al[kept] = EG.apply_sim3(network_fit.scale, network_fit.R, network_fit.t, refined[kept])
     t_err, r_err = EG.pose_errors(al, test_gt)
     rot_only = EG.rotation_only_errors(train_est[:, :3, :3], train_gt[:, :3, :3], refined[:, :3, :3],
                                        test_gt[:, :3, :3])

@@ -246,6 +246,13 @@ def localize_frames(
         raise UserError("--batch-size must be at least 1")
     align = predictor.alignment
     scale = sim3_from_dict(align)[0] if align else 1.0
+    # poses refined against the run's anchors lie in the anchors' world: their own alignment
+    on_anchors = None
+    if align and refiner is not None and refiner.map_name == "anchors":
+        on_anchors = align.get("anchors")
+        if on_anchors is None:
+            log.warning("the stored alignment was fitted on the network's poses alone; re-run `reloc evaluate "
+                        "--save-alignment` to align the poses refined against the run's anchors by theirs")
     records: list[dict] = []
     batch: list[tuple[Frame, Intrinsics]] = []
 
@@ -256,7 +263,13 @@ def localize_frames(
         if refiner is not None:
             refined = [refiner.refine(f.image, k, T[i]) for i, (f, k) in enumerate(batch)]
             T = np.stack([r.T_wc for r in refined])
-        T = apply_sim3_dict(align, T) if align else T
+        if align:
+            out = apply_sim3_dict(align, T)
+            if on_anchors is not None:  # those refined (not the network's kept) lie in the anchors' world
+                m = np.array([r.by != "none" for r in refined])
+                if m.any():
+                    out[m] = apply_sim3_dict(on_anchors, T[m])
+            T = out
         for i, (f, _) in enumerate(batch):
             rec = _record(f, len(records), T[i], pred, i, align is not None)
             if refined is not None:
@@ -313,9 +326,10 @@ def training_refiner(predictor: Predictor, shards: str | Path, cfg: RefineConfig
     T_wc = map_anchors(which, predictor.meta, ds, keys)
     log.info("--refine: the map is the %s of %d training frames",
              "network's poses" if T_wc is None else "run's anchors", len(recs))
-    if T_wc is None:
-        T_wc = cached_map_poses(Path(predictor.meta["path"]), ds.manifest_hash, keys, compute)
-    return Refiner.from_images(predictor, read, intrinsics, T_wc, cfg)
+    if T_wc is not None:
+        return Refiner.from_images(predictor, read, intrinsics, T_wc, cfg, "anchors")
+    T_wc = cached_map_poses(Path(predictor.meta["path"]), ds.manifest_hash, keys, compute)
+    return Refiner.from_images(predictor, read, intrinsics, T_wc, cfg, "network")
 
 
 def format_records(records: list[dict], fmt: str) -> str:

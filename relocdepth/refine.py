@@ -199,15 +199,18 @@ def refine_pose(ref: Reference, image: np.ndarray, intrinsics: Intrinsics, T_wc:
 class Refiner:
     """A :class:`Reference` built from a predictor and training images, refining its poses."""
 
-    def __init__(self, predictor: Predictor, ref: Reference, cfg: RefineConfig = RefineConfig()) -> None:
+    def __init__(self, predictor: Predictor, ref: Reference, cfg: RefineConfig = RefineConfig(),
+                 map_name: str = "network") -> None:
         self.predictor, self.ref, self.cfg = predictor, ref, cfg
+        self.map_name = map_name  # whose poses the map's are (MAPS): the refined poses lie in their world
 
     @classmethod
     def from_images(cls, predictor: Predictor, read: Callable[[int], np.ndarray],
                     intrinsics: list[Intrinsics], T_wc: np.ndarray,
-                    cfg: RefineConfig = RefineConfig()) -> Refiner:
+                    cfg: RefineConfig = RefineConfig(), map_name: str = "network") -> Refiner:
         """The map of N training images (``read(i)``: RGB uint8, ``intrinsics[i]``) whose poses
-        by the predictor are ``T_wc`` (:func:`predict_poses`, or stored)."""
+        are ``T_wc``: the predictor's (:func:`predict_poses`, or stored; ``map_name`` "network") or
+        the run's anchors ("anchors")."""
 
         def load(i: int) -> RefFrame:
             img = read(i)
@@ -216,7 +219,7 @@ class Refiner:
             return RefFrame(resize_to(img, (w, h)), intrinsics[i].scaled(w, h).K(),
                             cv2.resize(depth, (w, h), interpolation=cv2.INTER_LINEAR))
 
-        return cls(predictor, Reference(T_wc, load, cfg.cache), cfg)
+        return cls(predictor, Reference(T_wc, load, cfg.cache), cfg, map_name)
 
     def refine(self, image: np.ndarray, intrinsics: Intrinsics, T_wc: np.ndarray) -> Refined:
         """:func:`refine_pose` of one query image (RGB uint8 at any size, its intrinsics) whose

@@ -461,9 +461,10 @@ def test_evaluate_refines_against_the_runs_anchors(run: Path, synth_shards: Path
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     """A run with anchors (here the training frames' true poses moved by a known similarity) is
     refined against them (--refine-map auto or anchors), in the training frames' order, and the
-    refined poses are scored under the Sim(3) fitted on them: a refinement that puts every test
-    frame at its true pose in the anchors' world scores no error. --refine-map network keeps the
-    network's poses; anchors asked of a run that has none is one error line."""
+    refined poses are scored under the Sim(3) fitted on them (in the report's alignment): a
+    refinement that puts every test frame at its true pose in the anchors' world scores no error,
+    and frames it leaves at the network's pose score the network's errors. --refine-map network
+    keeps the network's poses; anchors asked of a run that has none is one error line."""
     from relocdepth.refine import Refined, Refiner
 
     sim3 = (2.5, cv2.Rodrigues(np.radians([10.0, -30.0, 5.0]))[0], np.array([0.4, -1.0, 2.0]))
@@ -485,6 +486,10 @@ def test_evaluate_refines_against_the_runs_anchors(run: Path, synth_shards: Path
         assert res.exit_code == 0, res.output
         refined = json.loads(out.read_text())["pose"]["refined"]
         validate("report", json.loads(out.read_text()), "report")
+        # the anchors' own alignment into the ground truth's frame (the inverse of sim3), whatever the map
+        stored = json.loads(out.read_text())["alignment"]["anchors"]
+        assert abs(stored["scale"] - 1 / sim3[0]) < 1e-5 and stored["degenerate"] is False
+        np.testing.assert_allclose(np.array(stored["rotation"]), sim3[1].T, atol=1e-5)
         if which == "network":
             assert refined["map"] == "network" and not np.allclose(maps[-1], anchors, atol=1e-3)
             assert refined["test"]["median_t_m"] > 0.01  # the anchors' world is not the network's
@@ -492,6 +497,15 @@ def test_evaluate_refines_against_the_runs_anchors(run: Path, synth_shards: Path
             assert refined["map"] == "anchors" and np.allclose(maps[-1], anchors, atol=1e-5)
             assert refined["test"]["median_t_m"] < 1e-4 and refined["test"]["median_r_deg"] < 0.01
             assert "(the map: the run's anchors)" in res.output
+    # frames the refinement leaves at the network's pose are in the network's world: under its
+    # alignment they score the network's own errors, not those of the anchors' alignment
+    monkeypatch.setattr(Refiner, "refine", lambda self, image, intrinsics, T_wc: Refined(T_wc, 0, "none"))
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(anchored), "-o", str(tmp_path / "kept.json"),
+                 "--refine")
+    assert res.exit_code == 0, res.output
+    pose = json.loads((tmp_path / "kept.json").read_text())["pose"]
+    assert pose["refined"]["map"] == "anchors" and pose["refined"]["network_pose_kept"] == len(truth)
+    assert pose["refined"]["test"] == pose["test"]
     res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "-o", str(tmp_path / "x.json"),
                  "--refine", "--refine-map", "anchors")
     assert res.exit_code == 2 and "holds no anchors" in res.output

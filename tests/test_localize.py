@@ -261,6 +261,54 @@ def test_refine_map_takes_the_runs_anchors_when_it_has_them(run: Path, folder: P
                              "--refine-map", "anchors"), "holds no anchors")
 
 
+def test_poses_refined_against_the_anchors_take_their_alignment(run: Path, folder: Path, synth_shards: Path,
+                                                                 tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After `evaluate --save-alignment` on a run with anchors (the true training poses moved by a
+    known similarity), a pose refined against the anchors is aligned by the anchors' Sim(3): a
+    refinement that finds the true pose in the anchors' world prints the true pose, metric; a pose
+    the refinement left at the network's is aligned by the network's, as without --refine. An
+    alignment stored without the anchors' aligns both by the network's."""
+    from relocdepth.checkpoint import save_alignment
+    from relocdepth.eval_geometry import apply_sim3
+    from relocdepth.localize import read_image
+    from relocdepth.predictor import Predictor
+    from relocdepth.refine import Refined, Refiner
+    from relocdepth.trajectory import apply_sim3_dict
+
+    sim3 = (2.5, cv2.Rodrigues(np.radians([10.0, -30.0, 5.0]))[0], np.array([0.4, -1.0, 2.0]))
+    anchored, _ = with_anchors(run, synth_shards, tmp_path / "run", sim3)
+    res = CliRunner().invoke(app, ["evaluate", str(synth_shards), "--checkpoint", str(anchored),
+                                   "-o", str(tmp_path / "report.json"), "--save-alignment"])
+    assert res.exit_code == 0, res.output
+    truth = {read_image(folder / f"frame-{i:06d}.color.png").tobytes():
+             (i, np.loadtxt(folder / f"frame-{i:06d}.pose.txt")) for i in range(FRAMES)}
+
+    def refine(self: Refiner, image: np.ndarray, intrinsics, T_wc: np.ndarray) -> Refined:
+        i, T_gt = truth[image.tobytes()]
+        if i % 2:
+            return Refined(T_wc, 0, "none")
+        return Refined(apply_sim3(*sim3, T_gt[None])[0], 2, "aligned")
+
+    monkeypatch.setattr(Refiner, "refine", refine)
+    plain = records(invoke(str(folder), "--checkpoint", str(anchored)))
+    refined = records(invoke(str(folder), "--checkpoint", str(anchored), "--refine", str(synth_shards)))
+    assert len(refined) == FRAMES and all(r["units"] == "m" for r in refined)
+    for i, (p, r) in enumerate(zip(plain, refined)):
+        if i % 2:
+            assert r["refined_by"] == "none" and np.allclose(r["T_wc"], p["T_wc"], atol=1e-9)
+        else:
+            assert r["refined_by"] == "aligned"
+            np.testing.assert_allclose(np.array(r["T_wc"]), np.loadtxt(folder / f"frame-{i:06d}.pose.txt"), atol=1e-4)
+    # an alignment stored before the anchors' was: both kinds of pose by the network's
+    align = Predictor.from_checkpoint(anchored).alignment
+    save_alignment(anchored, {k: v for k, v in align.items() if k != "anchors"})
+    older = records(invoke(str(folder), "--checkpoint", str(anchored), "--refine", str(synth_shards)))
+    for i, r in enumerate(older):
+        T_anchor = apply_sim3(*sim3, np.loadtxt(folder / f"frame-{i:06d}.pose.txt")[None])
+        expect = plain[i]["T_wc"] if i % 2 else apply_sim3_dict(align, T_anchor)[0]
+        np.testing.assert_allclose(np.array(r["T_wc"]), expect, atol=1e-6)
+
+
 def test_refine_map_is_stored_with_the_run(run: Path, folder: Path, synth_shards: Path, tmp_path: Path,
                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """The map's training poses are predicted once per checkpoint and shards; a checkpoint file
