@@ -181,8 +181,9 @@ class TrainConfig:
     # the frames between taking poses interpolated between theirs; the sequences are registered
     # on all frames (relocdepth.anchors.build_anchors). A build's bundle adjustment grows faster
     # than the frames (its tracks grow longer); frames 7 mm apart (30 fps) give it little more
-    # than frames 14 mm apart (README, Training: builds that scale with the scene; 1: every frame).
-    anchor_stride: int = 1
+    # than frames 14 mm apart (README, Training: builds that scale with the scene; 1: every frame;
+    # 0: each sequence its own, every frame up to relocdepth.anchors.ODOMETRY_FRAMES of them).
+    anchor_stride: int = 0
     # "vo": hold the depth network's scale where it was at the first anchors' build, with this
     # weight (relocdepth.method.Bootstrap.w_depth_scale; 0: free, the paper's). Monocular training
     # leaves the scale of all depths free, and the anchors are rebuilt in whatever units it has
@@ -287,8 +288,9 @@ class TrainConfig:
             raise UserError(f"--anchor-combine must be a number of builds >= 1, not {self.anchor_combine}")
         if self.anchor_combine > 1 and self.anchor != "vo":
             raise UserError("--anchor-combine needs --anchor vo (it combines the odometry's builds)")
-        if self.anchor_stride < 1:
-            raise UserError(f"--anchor-stride must be a number of frames >= 1, not {self.anchor_stride}")
+        if self.anchor_stride < 0:
+            raise UserError(f"--anchor-stride must be a number of frames >= 1, or 0 (by each sequence's "
+                            f"length), not {self.anchor_stride}")
         if self.anchor_stride > 1 and self.anchor != "vo":
             raise UserError("--anchor-stride needs --anchor vo (it thins the odometry's frames)")
         if not (self.w_depth_scale >= 0 and math.isfinite(self.w_depth_scale)):

@@ -159,8 +159,8 @@ def test_anchor_schedule_and_options() -> None:
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_combine": 0})
     with pytest.raises(UserError, match="--anchor-combine needs --anchor vo"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked", "anchor_combine": 3})
-    with pytest.raises(UserError, match="--anchor-stride must be a number of frames >= 1"):
-        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_stride": 0})
+    with pytest.raises(UserError, match="--anchor-stride must be a number of frames >= 1, or 0"):
+        TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "vo", "anchor_stride": -1})
     with pytest.raises(UserError, match="--anchor-stride needs --anchor vo"):
         TrainConfig.from_dict({"bootstrap": "essential", "bootstrap_steps": 10, "anchor": "linked", "anchor_stride": 2})
     with pytest.raises(UserError, match="--anchor-bundle-scale needs --anchor-bundle"):
@@ -855,8 +855,36 @@ def test_strided_anchors_run_the_odometry_on_the_kept_frames(synth_shards: Path)
     err = np.linalg.norm(a.T_wc[ix, :3, 3] - rel_gt[:, :3, 3], axis=1)
     assert path > 0.1 and err.max() < 0.4 * path, (err, path)
     assert rotation_angle_deg(np.swapaxes(a.T_wc[ix, :3, :3], -1, -2) @ rel_gt[:, :3, :3]).max() < 5.0
-    with pytest.raises(ValueError, match="stride must be >= 1"):
-        build_anchors(frames, depth, (W_, H_), stride=0)
+    with pytest.raises(ValueError, match="stride must be >= 0"):
+        build_anchors(frames, depth, (W_, H_), stride=-1)
+
+
+def test_automatic_stride_follows_each_sequences_length(synth_shards: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Stride 0: a sequence of up to ``ODOMETRY_FRAMES`` frames keeps every frame; a longer one the
+    smallest stride that keeps at most that many (and its last). In a build each sequence takes its
+    own: the fixture's, every frame; with the bound under half the longest's length, fewer."""
+    import relocdepth.anchors as A
+    from relocdepth.data import ImageFrames
+
+    most = A.ODOMETRY_FRAMES
+    assert A.sequence_stride(most, 0) == A.sequence_stride(most + 1, 0) == 1 and A.sequence_stride(most + 2, 0) == 2
+    assert A.sequence_stride(1000, 0) == 2 and A.sequence_stride(7000, 0) == 14 and A.sequence_stride(1000, 3) == 3
+    for n in range(1, 4000, 37):
+        k = A.sequence_stride(n, 0)
+        assert len(A.strided(n, k)) <= most + 1 and (k == 1 or len(A.strided(n, k - 1)) > most + 1), n
+    frames = ImageFrames.open(synth_shards)
+    _, depth_gt = _gt(synth_shards, frames)
+    seqs = A.sequences_of(frames)
+
+    def depth(ix: list[int], ims: list[np.ndarray]) -> list[np.ndarray]:
+        return [depth_gt[i] for i in ix]
+
+    size = (frames.frames[0].intrinsics.width, frames.frames[0].intrinsics.height)
+    assert A.build_anchors(frames, depth, size, stride=0).odometry_frames == len(frames)
+    monkeypatch.setattr(A, "ODOMETRY_FRAMES", (max(map(len, seqs)) - 1) // 2)
+    thinned = [A.strided(len(ix), A.sequence_stride(len(ix), 0)) for ix in seqs]
+    assert all(len(h) < len(ix) for h, ix in zip(thinned, seqs))
+    assert A.build_anchors(frames, depth, size, stride=0).odometry_frames == sum(map(len, thinned))
 
 
 def test_trainer_builds_strided_anchors(synth_shards: Path, tmp_path: Path) -> None:
