@@ -440,12 +440,12 @@ def refined_report(fit: EG.Sim3, train_est: np.ndarray, train_gt: np.ndarray, re
     ``train_est`` (the network's, or the run's anchors) to ``train_gt``, those that kept the
     network's pose under ``network_fit`` (its own poses' alignment; None: ``fit``); returns
     (report section ``pose.refined``, aligned poses)."""
+    from relocdepth.refine import align_refined
+
     refined = np.stack([r.T_wc for r in results])
     by = [r.by for r in results]
-    al = EG.apply_sim3(fit.scale, fit.R, fit.t, refined)
-    kept = np.array([b == "none" for b in by])
-    if network_fit is not None and kept.any():
-        al[kept] = EG.apply_sim3(network_fit.scale, network_fit.R, network_fit.t, refined[kept])
+    kept_fit = network_fit or fit
+    al = align_refined(results, (fit.scale, fit.R, fit.t), (kept_fit.scale, kept_fit.R, kept_fit.t))
     t_err, r_err = EG.pose_errors(al, test_gt)
     rot_only = EG.rotation_only_errors(train_est[:, :3, :3], train_gt[:, :3, :3], refined[:, :3, :3],
                                        test_gt[:, :3, :3])

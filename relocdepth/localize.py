@@ -28,7 +28,7 @@ from relocdepth.imageio import read_rgb
 from relocdepth.ingest.source import natural_key
 from relocdepth.ingest.video import VIDEO_SUFFIXES, iter_video
 from relocdepth.predictor import Prediction, Predictor
-from relocdepth.refine import RefineConfig, Refiner, cached_map_poses, map_anchors, predict_poses
+from relocdepth.refine import RefineConfig, Refiner, align_refined, cached_map_poses, map_anchors, predict_poses
 from relocdepth.trajectory import apply_sim3_dict, sim3_from_dict, tum_lines
 
 log = logging.getLogger(__name__)
@@ -263,13 +263,10 @@ def localize_frames(
         if refiner is not None:
             refined = [refiner.refine(f.image, k, T[i]) for i, (f, k) in enumerate(batch)]
             T = np.stack([r.T_wc for r in refined])
-        if align:
-            out = apply_sim3_dict(align, T)
-            if on_anchors is not None:  # those refined (not the network's kept) lie in the anchors' world
-                m = np.array([r.by != "none" for r in refined])
-                if m.any():
-                    out[m] = apply_sim3_dict(on_anchors, T[m])
-            T = out
+        if align and on_anchors is not None:  # those refined (not the network's kept) lie in the anchors' world
+            T = align_refined(refined, sim3_from_dict(on_anchors), sim3_from_dict(align))
+        elif align:
+            T = apply_sim3_dict(align, T)
         for i, (f, _) in enumerate(batch):
             rec = _record(f, len(records), T[i], pred, i, align is not None)
             if refined is not None:

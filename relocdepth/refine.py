@@ -158,6 +158,20 @@ class Refined:
 REFINED_BY = ("aligned", "pairs", "none")
 
 
+def align_refined(results: list[Refined], on_map: tuple, on_network: tuple) -> np.ndarray:
+    """The refined poses ``(N, 4, 4)`` of ``results`` in the ground truth's frame: those the
+    refinement placed lie in the map's world and go by its Sim(3) ``on_map``, those that kept the
+    network's pose ("none") by the network's ``on_network`` (each ``(scale, R, t)``)."""
+    from relocdepth.eval_geometry import apply_sim3
+
+    T = np.stack([r.T_wc for r in results])
+    out = apply_sim3(*on_network, T)
+    placed = np.array([r.by != "none" for r in results])
+    if placed.any():
+        out[placed] = apply_sim3(*on_map, T[placed])
+    return out
+
+
 def refine_pose(ref: Reference, image: np.ndarray, intrinsics: Intrinsics, T_wc: np.ndarray,
                 cfg: RefineConfig = RefineConfig()) -> Refined:
     """The query's refined pose. ``image``: RGB uint8 at any size, ``intrinsics`` its camera; it is
