@@ -21,16 +21,25 @@ def ssim_distance(x: Tensor, y: Tensor) -> Tensor:
 
     monodepth2's SSIM: 3x3 box window with reflection padding. Not kornia's ``ssim``, which uses a
     Gaussian window with zero padding (different values at borders and a different loss).
+    The window's means are sums of shifted views (:func:`_box3`), as ``avg_pool2d(., 3, 1)`` but
+    1.9-3x faster forward and backward on a CPU thread (README, Performance: method core).
     """
     x = F.pad(x, (1, 1, 1, 1), mode="reflect")
     y = F.pad(y, (1, 1, 1, 1), mode="reflect")
-    mu_x, mu_y = F.avg_pool2d(x, 3, 1), F.avg_pool2d(y, 3, 1)
-    sigma_x = F.avg_pool2d(x * x, 3, 1) - mu_x * mu_x
-    sigma_y = F.avg_pool2d(y * y, 3, 1) - mu_y * mu_y
-    sigma_xy = F.avg_pool2d(x * y, 3, 1) - mu_x * mu_y
+    mu_x, mu_y = _box3(x), _box3(y)
+    sigma_x = _box3(x * x) - mu_x * mu_x
+    sigma_y = _box3(y * y) - mu_y * mu_y
+    sigma_xy = _box3(x * y) - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sigma_xy + SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sigma_x + sigma_y + SSIM_C2)
     return torch.clamp((1 - num / den) / 2, 0, 1)
+
+
+def _box3(t: Tensor) -> Tensor:
+    """The mean of each 3x3 window of ``t (..., H, W)`` -> ``(..., H - 2, W - 2)`` (a padded input's
+    windows), as the sum of three shifted views along each axis: separable, and no pooling kernel."""
+    rows = t[..., :, :-2] + t[..., :, 1:-1] + t[..., :, 2:]
+    return (rows[..., :-2, :] + rows[..., 1:-1, :] + rows[..., 2:, :]) / 9.0
 
 
 def photometric_error(target: Tensor, pred: Tensor, alpha: float = 0.85) -> Tensor:

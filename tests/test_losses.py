@@ -49,6 +49,34 @@ def test_photometric_terms() -> None:
     assert torch.allclose(photometric_loss(a, a, torch.zeros_like(ones)), torch.zeros(2))
 
 
+def _ssim_at(x: np.ndarray, y: np.ndarray, i: int, j: int) -> float:
+    """(1 - SSIM) / 2 of one channel at pixel (i, j), its 3x3 window mirrored at the borders
+    (reflection without repeating the edge), from the definition (Wang et al. 2004)."""
+    h, w = x.shape
+    rows = [abs(r) if r < 0 else (2 * (h - 1) - r if r >= h else r) for r in (i - 1, i, i + 1)]
+    cols = [abs(c) if c < 0 else (2 * (w - 1) - c if c >= w else c) for c in (j - 1, j, j + 1)]
+    a, b = x[np.ix_(rows, cols)], y[np.ix_(rows, cols)]
+    mx, my = a.mean(), b.mean()
+    vx, vy, cxy = (a * a).mean() - mx * mx, (b * b).mean() - my * my, (a * b).mean() - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    ssim = (2 * mx * my + c1) * (2 * cxy + c2) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    return float(np.clip((1 - ssim) / 2, 0, 1))
+
+
+def test_ssim_matches_its_definition_at_every_pixel_and_has_true_gradients() -> None:
+    gen = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 3, 7, 9, generator=gen, dtype=torch.float64)
+    y = (x + 0.3 * torch.rand(2, 3, 7, 9, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    got = ssim_distance(x, y)
+    assert got.shape == x.shape
+    xs, ys = x.numpy(), y.numpy()
+    want = np.array([[[[_ssim_at(xs[b, c], ys[b, c], i, j) for j in range(9)] for i in range(7)]
+                      for c in range(3)] for b in range(2)])
+    np.testing.assert_allclose(got.numpy(), want, atol=1e-12)  # corners and edges included
+    xg, yg = x[:1, :1].clone().requires_grad_(), y[:1, :1].clone().requires_grad_()
+    assert torch.autograd.gradcheck(ssim_distance, (xg, yg))
+
+
 def test_smoothness_is_scale_invariant_and_edge_aware() -> None:
     gen = torch.Generator().manual_seed(1)
     disp = torch.rand(1, 1, 16, 16, generator=gen)
