@@ -31,7 +31,7 @@ def evaluate(
     save_alignment: Annotated[bool, typer.Option("--save-alignment", help="Store the fitted Sim(3) with the run: localize then reports metric poses in the ground-truth frame.")] = False,
     batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 16,
     device: Annotated[str, typer.Option(metavar=DEVICE_METAVAR, help=DEVICE_HELP)] = DEVICE_DEFAULT,
-    test_sequences: Annotated[str | None, typer.Option("--test-sequences", metavar="NAMES", help="Comma-separated sequences to test on instead of the test split (the others fit the Sim(3)); e.g. a training sequence, to see whether the networks fit the frames they trained on.")] = None,
+    test_sequences: Annotated[str | None, typer.Option("--test-sequences", metavar="NAMES", help="Comma-separated sequences to test on instead of the test split (the training split's other sequences fit the Sim(3)); e.g. a training sequence, to see whether the networks fit the frames they trained on.")] = None,
     refine: Annotated[bool, typer.Option("--refine", help="Also refine each test pose against the training frames nearest it (two-view geometry and direct alignment with the network's depth; the map: --refine-map) and report both. Not part of the paper's protocol.")] = False,
     refine_neighbours: Annotated[int, typer.Option("--refine-neighbours", min=1, metavar="N", help="With --refine: training frames paired with each test frame.")] = 3,
     refine_min_pairs: Annotated[int, typer.Option("--refine-min-pairs", min=1, metavar="N", help="With --refine: agreeing pairs needed to replace the network's pose.")] = 2,

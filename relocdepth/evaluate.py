@@ -206,7 +206,13 @@ def _checked_records(ds, test_sequences: tuple[str, ...] = ()) -> tuple[list, li
             raise UserError(f"no sequence {', '.join(unknown)} with poses in {ds.root} "
                             f"(it has {', '.join(known)})")
         test = [r for r in posed if r.sequence in test_sequences]
-        train = [r for r in posed if r.sequence not in test_sequences]
+        # the Sim(3) comes from the training split only, as without the option: frames the
+        # networks never saw (the test split's) would pull it towards their own errors
+        train = [r for r in posed if r.split == "train" and r.sequence not in test_sequences]
+        if len(train) < MIN_FIT_FRAMES:
+            raise UserError(f"--test-sequences leaves {len(train)} training frames with poses outside "
+                            f"{', '.join(test_sequences)} to fit the Sim(3) (needs {MIN_FIT_FRAMES}); "
+                            "name fewer training sequences")
     else:
         train = [r for r in posed if r.split == "train"]
         test = [r for r in posed if r.split == "test"]

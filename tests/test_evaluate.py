@@ -311,8 +311,12 @@ def test_evaluate_on_chosen_sequences(run: Path, synth_shards: Path, tmp_path: P
     validate("report", report)
     assert report["dataset"]["test_sequences"] == ["seq-01"]
     assert report["dataset"]["test_frames"] == SCENE_FRAMES
-    assert report["dataset"]["train_frames"] == 2 * SCENE_FRAMES  # seq-02 and seq-03 fit the Sim(3)
     ds = open_dataset(synth_shards)
+    splits = {r.sequence: r.split for r in ds.records}
+    assert splits == {"seq-01": "train", "seq-02": "train", "seq-03": "test"}
+    # only seq-02 fits the Sim(3): the test split's frames, which the networks never saw, do not
+    assert report["dataset"]["train_frames"] == SCENE_FRAMES
+    assert report["pose"]["train"]["frames"] == SCENE_FRAMES
     seq1 = [r for r in ds.records if r.sequence == "seq-01"]
     _, T_gt = read_tum(report["outputs"]["tum"]["seq-01"]["groundtruth"])
     np.testing.assert_allclose(T_gt, np.stack([ds.read_pose(r) for r in seq1]), atol=1e-6)
@@ -321,6 +325,11 @@ def test_evaluate_on_chosen_sequences(run: Path, synth_shards: Path, tmp_path: P
     assert res.exit_code == 2, res.output
     last = res.output.strip().splitlines()[-1]
     assert last.startswith("error: ") and "seq-09" in last and "seq-01" in last, res.output
+    # every training sequence named: nothing left to fit the Sim(3) on
+    res = invoke("evaluate", str(synth_shards), "--checkpoint", str(run), "--test-sequences", "seq-01,seq-02")
+    assert res.exit_code == 2, res.output
+    last = res.output.strip().splitlines()[-1]
+    assert last.startswith("error: ") and "0 training frames" in last, res.output
 
 
 def test_per_frame_csv_confidence_ranking_and_evo_ape(
