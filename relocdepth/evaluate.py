@@ -205,19 +205,13 @@ def _checked_records(ds, test_sequences: tuple[str, ...] = ()) -> tuple[list, li
         if unknown:
             raise UserError(f"no sequence {', '.join(unknown)} with poses in {ds.root} "
                             f"(it has {', '.join(known)})")
-        test = [r for r in posed if r.sequence in test_sequences]
-        # the Sim(3) comes from the training split only, as without the option: frames the
-        # networks never saw (the test split's) would pull it towards their own errors
-        train = [r for r in posed if r.split == "train" and r.sequence not in test_sequences]
-        if len(train) < MIN_FIT_FRAMES:
-            raise UserError(f"--test-sequences leaves {len(train)} training frames with poses outside "
-                            f"{', '.join(test_sequences)} to fit the Sim(3) (needs {MIN_FIT_FRAMES}); "
-                            "name fewer training sequences")
-    else:
-        train = [r for r in posed if r.split == "train"]
-        test = [r for r in posed if r.split == "test"]
+    # the Sim(3) comes from the training split only, the named sequences left out: frames the
+    # networks never saw (the test split's) would pull it towards their own errors
+    train = [r for r in posed if r.split == "train" and r.sequence not in test_sequences]
+    test = [r for r in posed if (r.sequence in test_sequences if test_sequences else r.split == "test")]
     if len(train) < MIN_FIT_FRAMES:
-        raise UserError(f"{ds.root} has {len(train)} training frames with poses; the Sim(3) fit "
+        outside = f" outside {', '.join(test_sequences)}" if test_sequences else ""
+        raise UserError(f"{ds.root} has {len(train)} training frames with poses{outside}; the Sim(3) fit "
                         f"needs at least {MIN_FIT_FRAMES}")
     if not test:
         raise UserError(f"{ds.root} has no test frames with poses (the test split is empty)")
